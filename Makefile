@@ -1,0 +1,35 @@
+# zagv developer commands. `make run` and `make test` work on a fresh machine with Python >= 3.11.
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: install run test lint bench schema clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+run: install
+	$(BIN)/zagv up --sim
+
+test: install
+	$(BIN)/ruff check .
+	$(BIN)/python -m proto.schema --check
+	$(BIN)/python -m pytest -q -rs
+
+lint: install
+	$(BIN)/ruff check .
+
+bench: install
+	$(BIN)/zagv bench
+
+schema: install
+	$(BIN)/python -m proto.schema
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -1,0 +1,45 @@
+"""``zagv router``: a standalone Zenoh router (a zenoh session in router mode) for hosts without zenohd."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+
+from services.common.lifetime import die_with_parent
+from services.common.logs import setup_logging
+from services.common.session import open_session, router_settings
+from services.common.settings import ZenohSettings
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("router", help="run a Zenoh router (loopback by default; multicast scouting off)")
+    p.add_argument("--listen", action="append", help=f"endpoint to listen on (default {DEFAULT_LISTEN})")
+    p.add_argument("--config", help="zenoh json5 config file applied first (TLS, access control)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    die_with_parent()
+    setup_logging("router")
+    settings = router_settings(args.listen or [DEFAULT_LISTEN])
+    if args.config:
+        settings = ZenohSettings(mode="router", connect=[], listen=settings.listen, config_file=args.config)
+    session = open_session(settings)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    print(f"zagv router: listening on {', '.join(settings.listen)}", flush=True)
+    try:
+        from services.common import systemd
+
+        systemd.notify("READY=1")
+        period = systemd.watchdog_period_s()
+        while not stop.wait(period or 3600):
+            if period:
+                systemd.notify("WATCHDOG=1")
+    finally:
+        session.close()
+    return 0

@@ -1,0 +1,258 @@
+"""``zagv up``: the embedded router plus every service as a supervised process.
+
+In sim mode it also starts the simulated CAN bus (a python-can-remote server over a virtual bus on 127.0.0.1) and
+the simulator; every service then follows the simulator's clock. ``zagv: ready`` is printed once each service's
+health token (``agv/<id>/@health/<service>``) is up; Ctrl-C or SIGTERM stops everything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import importlib.util
+import os
+import signal
+import socket
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from proto.keys import Keys
+from services.cli.supervisor import ChildSpec, Supervisor, python_module
+from services.common.session import open_session, router_settings
+
+#: services in start order; those whose package has no __main__ yet are skipped
+SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def service_available(name: str) -> bool:
+    return importlib.util.find_spec(f"services.{name}.__main__") is not None
+
+
+@dataclass
+class StackPlan:
+    """Everything needed to start one robot's stack: ports, options, and the children to run."""
+
+    robot_id: str = "r1"
+    sim: bool = True
+    world: str = "corridor"
+    map_yaml: str | None = None
+    config: str | None = None
+    speed: float = 1.0
+    headless: bool = False
+    mapping: bool = False
+    zenoh_port: int = 7447
+    can_port: int = 54701
+    lidar_port: int = 2111
+    http_port: int = 8080
+    run_dir: str = ""
+    extra_sets: list[str] = field(default_factory=list)
+    only: list[str] | None = None
+
+    @property
+    def endpoint(self) -> str:
+        return f"tcp/127.0.0.1:{self.zenoh_port}"
+
+    @property
+    def can_channel(self) -> str:
+        return f"ws://127.0.0.1:{self.can_port}/"
+
+    def services(self) -> list[str]:
+        names = [s for s in SERVICES if service_available(s)]
+        if not self.sim:
+            names = [s for s in names if s != "sim"]
+        if self.headless:
+            names = [s for s in names if s != "hmi_api"]
+        if self.only is not None:
+            names = [s for s in names if s in self.only]
+        return names
+
+    def common_args(self) -> list[str]:
+        args = ["--connect", self.endpoint, "--robot-id", self.robot_id]
+        if self.config:
+            args += ["--config", self.config]
+        if self.sim:
+            args += ["--use-sim-time"]
+        return args
+
+    def service_sets(self, name: str) -> list[str]:
+        """``--set`` overrides that wire a service to this plan's ports and files."""
+        sets: list[str] = []
+        if name == "sim":
+            sets += [f"sim.can_channel={_toml_str(self.can_channel)}", f"sim.lidar_port={self.lidar_port}",
+                     f"sim.speed_factor={self.speed}"]
+            sets += [f"sim.map_yaml={_toml_str(self.map_yaml)}"] if self.map_yaml else \
+                [f"sim.world={_toml_str(self.world)}"]
+        elif name == "drive" and self.sim:
+            sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+        elif name == "lidar" and self.sim:
+            sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port}"]
+        elif name == "localization":
+            map_yaml = self.map_yaml or (str(Path(self.run_dir) / "world.yaml") if self.sim else None)
+            if map_yaml:
+                sets += [f"localization.map_yaml={_toml_str(map_yaml)}"]
+            sets += [f"localization.state_dir={_toml_str(self.run_dir)}"]
+            if self.mapping:
+                sets += ["localization.mode=\"mapping\""]
+        elif name == "hmi_api":
+            sets += [f"hmi_api.port={self.http_port}", f"hmi_api.state_dir={_toml_str(self.run_dir)}"]
+        prefix = f"{name}."
+        sets += [s for s in self.extra_sets if s.startswith(prefix)]
+        return [a for s in sets for a in ("--set", s)]
+
+    def children(self) -> list[ChildSpec]:
+        env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
+        specs = []
+        if self.sim:
+            specs.append(ChildSpec("canbus", python_module("services.sim.canbus", "--port", str(self.can_port)),
+                                   env=env))
+        for name in self.services():
+            argv = python_module(f"services.{name}", *self.common_args(), *self.service_sets(name))
+            specs.append(ChildSpec(name, argv, env=env))
+        return specs
+
+
+def _toml_str(s: str) -> str:
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def render_world_map(plan: StackPlan) -> None:
+    """Have the simulator write its world's map (YAML + PGM) into the run folder for localization."""
+    if not plan.sim or plan.map_yaml or not service_available("sim"):
+        return
+    import subprocess
+
+    subprocess.run(
+        python_module("services.sim.render_map", "--world", plan.world, "--out", str(Path(plan.run_dir) / "world")),
+        check=True, cwd=REPO_ROOT,
+    )
+
+
+class HealthWatch:
+    """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:  # noqa: ANN001
+        self.alive: set[str] = set()
+        self._on_change = on_change
+        self._sub = session.liveliness().declare_subscriber(keys.health_all, self._on_sample, history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.alive.add(name)
+        else:
+            self.alive.discard(name)
+        self._on_change(name, sample.kind == zenoh.SampleKind.PUT)
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:  # noqa: ANN001
+    """Run the stack until SIGINT/SIGTERM; returns the exit code."""
+    loop = asyncio.get_running_loop()
+    router = open_session(router_settings([plan.endpoint]))
+    keys = Keys(plan.robot_id)
+    expected = set(plan.services())
+    ready = asyncio.Event()
+    was_ready = False
+
+    def on_change(name: str, up: bool) -> None:
+        def update() -> None:
+            nonlocal was_ready
+            if expected <= watch.alive and not ready.is_set():
+                ready.set()
+            if was_ready and name in expected:
+                announce(f"zagv: {name} {'healthy again' if up else 'lost its health token'}")
+        loop.call_soon_threadsafe(update)
+
+    watch = HealthWatch(router, keys, on_change)
+    supervisor = Supervisor()
+    stop = asyncio.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    code = 0
+    try:
+        announce(f"zagv: router on {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
+        await loop.run_in_executor(None, render_world_map, plan)
+        for spec in plan.children():
+            supervisor.add(spec)
+        started = time.monotonic()
+        waiter = loop.create_task(ready.wait())
+        stopper = loop.create_task(stop.wait())
+        await asyncio.wait({waiter, stopper}, timeout=ready_timeout_s, return_when=asyncio.FIRST_COMPLETED)
+        if ready.is_set():
+            was_ready = True
+            announce(f"zagv: ready ({', '.join(sorted(expected))} healthy in {time.monotonic() - started:.1f} s)")
+            if "hmi_api" in expected:
+                announce(f"zagv: HMI at http://127.0.0.1:{plan.http_port}/")
+        elif not stop.is_set():
+            missing = sorted(expected - watch.alive)
+            announce(f"zagv: not ready after {ready_timeout_s:.0f} s; missing: {', '.join(missing)}")
+            code = 1
+        if code == 0:
+            await stopper
+        waiter.cancel()
+        stopper.cancel()
+    finally:
+        announce("zagv: stopping")
+        await supervisor.stop()
+        watch.close()
+        router.close()
+    return code
+
+
+def add_stack_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sim", action="store_true", help="simulated robot: sim, CAN bus and LMS111 emulation")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--world", default="corridor", help="built-in sim world (default %(default)s)")
+    g.add_argument("--map", dest="map_yaml", help="ROS map YAML to simulate and localize on")
+    p.add_argument("--config", help="robot TOML file")
+    p.add_argument("--speed", type=float, default=1.0, help="sim speed factor (sim s per wall s)")
+    p.add_argument("--headless", action="store_true", help="no HMI (hmi_api not started)")
+    p.add_argument("--mapping", action="store_true", help="start localization in SLAM (mapping) mode")
+    p.add_argument("--robot-id", default="r1", help="robot id (default %(default)s)")
+    p.add_argument("--zenoh-port", type=int, default=7447, help="router TCP port on 127.0.0.1 (default %(default)s)")
+    p.add_argument("--can-port", type=int, default=54701, help="simulated CAN bus port (default %(default)s)")
+    p.add_argument("--lidar-port", type=int, default=2111, help="emulated LMS111 port (default %(default)s)")
+    p.add_argument("--http-port", type=int, default=8080, help="HMI port (default %(default)s)")
+    p.add_argument("--run-dir", help="folder for run state (default: a new temporary folder)")
+    p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
+                   help="config override passed to the service it names")
+    p.add_argument("--only", help="comma-separated subset of services to start")
+
+
+def plan_from_args(args: argparse.Namespace) -> StackPlan:
+    run_dir = args.run_dir or tempfile.mkdtemp(prefix="zagv-run-")
+    Path(run_dir).mkdir(parents=True, exist_ok=True)
+    return StackPlan(
+        robot_id=args.robot_id, sim=args.sim, world=args.world, map_yaml=args.map_yaml, config=args.config,
+        speed=args.speed, headless=args.headless, mapping=args.mapping, zenoh_port=args.zenoh_port,
+        can_port=args.can_port, lidar_port=args.lidar_port, http_port=args.http_port, run_dir=run_dir,
+        extra_sets=args.set, only=args.only.split(",") if args.only else None,
+    )
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("up", help="start the router and every service (supervised)")
+    add_stack_options(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    plan = plan_from_args(args)
+    with contextlib.suppress(KeyboardInterrupt):
+        return asyncio.run(run_stack(plan, announce=lambda s: print(s, flush=True)))
+    return 130
+

@@ -1,0 +1,119 @@
+"""One clock for every service: wall time, or simulated time from the ``clock`` topic (``use_sim_time``).
+
+``now()`` is seconds (wall: Unix time; sim: seconds since the simulation started). ``sleep``/``sleep_until``
+wait on that clock, so a service runs unchanged when the simulator runs faster than real time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import logging
+import time
+from typing import Protocol
+
+log = logging.getLogger(__name__)
+
+
+class Clock(Protocol):
+    def now(self) -> float: ...
+
+    async def sleep_until(self, t: float) -> None: ...
+
+    async def sleep(self, dt: float) -> None: ...
+
+
+class WallClock:
+    """System time; sleeps with the event loop's monotonic timer."""
+
+    is_sim = False
+
+    def now(self) -> float:
+        return time.time()
+
+    async def sleep(self, dt: float) -> None:
+        await asyncio.sleep(max(0.0, dt))
+
+    async def sleep_until(self, t: float) -> None:
+        await asyncio.sleep(max(0.0, t - time.time()))
+
+
+class SimClock:
+    """Time driven by ``advance(t)`` (the ``clock`` topic); waiters wake when sim time reaches their target."""
+
+    is_sim = True
+
+    def __init__(self) -> None:
+        self._now = 0.0
+        self.speed_factor = 1.0
+        self._waiters: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._seq = itertools.count()
+        self._started = asyncio.Event()
+
+    def now(self) -> float:
+        return self._now
+
+    @property
+    def started(self) -> bool:
+        return self._started.is_set()
+
+    async def wait_started(self) -> None:
+        """Wait for the first clock message."""
+        await self._started.wait()
+
+    def advance(self, t: float, speed_factor: float | None = None) -> None:
+        """Set sim time to ``t`` (monotonic: an older stamp is ignored) and wake due sleepers. Loop thread only."""
+        if speed_factor is not None:
+            self.speed_factor = speed_factor
+        if t < self._now:
+            if t < self._now - 1.0:
+                # the simulator restarted: jump back, keep waiters relative to the new epoch
+                log.warning("sim clock jumped back from %.3f to %.3f s", self._now, t)
+                self._now = t
+            return
+        self._now = t
+        self._started.set()
+        while self._waiters and self._waiters[0][0] <= t:
+            _, _, fut = heapq.heappop(self._waiters)
+            if not fut.done():
+                fut.set_result(None)
+
+    async def sleep_until(self, t: float) -> None:
+        if t <= self._now and self.started:
+            await asyncio.sleep(0)
+            return
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._waiters, (t, next(self._seq), fut))
+        await fut
+
+    async def sleep(self, dt: float) -> None:
+        await self.sleep_until(self._now + max(0.0, dt))
+
+
+class Rate:
+    """Fixed-rate loop timing on a clock. ``await rate.sleep()`` once per cycle.
+
+    An overrun (a cycle that ends after its deadline) is counted in ``overruns`` and the schedule is re-anchored
+    at now, so a slow cycle does not cause a burst of catch-up cycles.
+    """
+
+    def __init__(self, clock: Clock, hz: float) -> None:
+        if not hz > 0:
+            raise ValueError(f"rate must be > 0 Hz, got {hz}")
+        self.clock = clock
+        self.period_s = 1.0 / hz
+        self.overruns = 0
+        self.cycles = 0
+        self._next: float | None = None
+
+    async def sleep(self) -> None:
+        now = self.clock.now()
+        self.cycles += 1
+        if self._next is None:
+            self._next = now + self.period_s
+        elif now > self._next + self.period_s * 0.5:
+            self.overruns += 1
+            self._next = now + self.period_s
+        await self.clock.sleep_until(self._next)
+        self._next += self.period_s

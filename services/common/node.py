@@ -1,0 +1,298 @@
+"""The asyncio bridge between a service and Zenoh.
+
+Zenoh delivers samples and queries on its own threads; ``Node`` decodes them there and hands typed messages to the
+service's event loop. Every payload is checked against the type its key carries (``proto.registry``); a payload
+that does not decode is logged (rate-limited), counted in ``bad_payloads`` and dropped, and the service keeps
+running. Latched topics (``map``) are served to late joiners by a queryable on the same key, which subscribers
+query once when they declare themselves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import math
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any, TypeVar
+
+import msgspec
+import zenoh
+
+from proto import codec
+from proto.keys import Keys
+from proto.messages import Message, Reply
+from services.common.clock import Clock, SimClock, WallClock
+
+T = TypeVar("T", bound=Message)
+log = logging.getLogger("zagv.node")
+
+
+class QueryError(RuntimeError):
+    """A query that got no usable reply (timeout, no queryable, an error reply or a bad payload)."""
+
+
+class TopicPublisher:
+    """Publishes one topic's messages; keeps the last one for late joiners when latched."""
+
+    def __init__(self, node: Node, name: str, latched: bool, express: bool) -> None:
+        self.key = node.keys(name)
+        self._pub = node.session.declare_publisher(self.key, express=express)
+        self._last: bytes | None = None
+        self._queryable = None
+        if latched:
+            self._queryable = node.session.declare_queryable(self.key, self._serve_last, complete=False)
+
+    def _serve_last(self, query: zenoh.Query) -> None:
+        if self._last is not None:
+            query.reply(self.key, self._last)
+
+    def put(self, msg: Message) -> None:
+        payload = codec.encode(msg)
+        if self._queryable is not None:
+            self._last = payload
+        self._pub.put(payload)
+
+    def put_raw(self, payload: bytes) -> None:
+        self._pub.put(payload)
+
+    def close(self) -> None:
+        self._pub.undeclare()
+        if self._queryable is not None:
+            self._queryable.undeclare()
+
+
+class Node:
+    """A service's Zenoh presence: typed pub/sub and queries on its loop, a clock and a health token."""
+
+    def __init__(self, name: str, session: zenoh.Session, keys: Keys, clock: Clock | None = None) -> None:
+        self.name = name
+        self.session = session
+        self.keys = keys
+        self.clock: Clock = clock or WallClock()
+        self.loop = asyncio.get_running_loop()
+        self.log = logging.getLogger(f"zagv.{name}")
+        self.bad_payloads: collections.Counter[str] = collections.Counter()
+        self._bad_logged_at: dict[str, float] = {}
+        self._declared: list[Any] = []
+        self._started_at = time.monotonic()
+        self._token = session.liveliness().declare_token(keys.health(name))
+        self._stats = session.declare_queryable(keys(f"@stats/{name}"), self._serve_stats)
+        self.extra_stats: dict[str, Any] = {}
+        self._tasks: set[asyncio.Task[Any]] = set()
+        if isinstance(self.clock, SimClock):
+            sim_clock = self.clock
+            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor))
+
+    def spawn(self, coro: Awaitable[Any]) -> asyncio.Task[Any]:
+        """Run ``coro`` as a task on the loop, keeping a reference until it ends (loop thread only)."""
+        task = self.loop.create_task(coro)  # type: ignore[arg-type]
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def _serve_stats(self, query: zenoh.Query) -> None:
+        stats = {
+            "service": self.name,
+            "uptime_s": time.monotonic() - self._started_at,
+            "bad_payloads": dict(self.bad_payloads),
+            "clock_s": self.clock.now(),
+            **self.extra_stats,
+        }
+        query.reply(query.key_expr, msgspec.json.encode(stats))
+
+    def _bad_payload(self, key: str, exc: Exception) -> None:
+        self.bad_payloads[key] += 1
+        now = time.monotonic()
+        if now - self._bad_logged_at.get(key, -math.inf) >= 1.0:
+            self._bad_logged_at[key] = now
+            self.log.warning("dropped bad payload #%d on %s: %s", self.bad_payloads[key], key, exc)
+
+    def _decoder(self, name: str, t: type[T] | None) -> Callable[[zenoh.Sample], T | None]:
+        msg_type = t or codec.topic_type(name)
+
+        def decode(sample: zenoh.Sample) -> T | None:
+            key = str(sample.key_expr)
+            try:
+                return codec.decode_as(msg_type, sample.payload.to_bytes(), key)
+            except codec.ProtoDecodeError as exc:
+                self.loop.call_soon_threadsafe(self._bad_payload, key, exc)
+                return None
+
+        return decode
+
+    # ------------------------------------------------------------------ pub/sub
+
+    def publisher(self, name: str, *, latched: bool = False, express: bool = False) -> TopicPublisher:
+        """A publisher on ``agv/<id>/<name>``; ``latched`` serves the last message to late joiners."""
+        pub = TopicPublisher(self, name, latched, express)
+        self._declared.append(pub)
+        return pub
+
+    def subscribe(
+        self,
+        name: str,
+        callback: Callable[[T], Any],
+        *,
+        msg_type: type[T] | None = None,
+        latched: bool = False,
+        on_zenoh_thread: bool = False,
+    ) -> None:
+        """Call ``callback(msg)`` for each valid message on ``name``.
+
+        The callback runs on the event loop, or directly on Zenoh's thread when ``on_zenoh_thread`` (for
+        latency-critical consumers that do their own locking). A coroutine function is scheduled as a task.
+        With ``latched``, the last message held by a latched publisher is fetched once at declaration.
+        """
+        decode = self._decoder(name, msg_type)
+        is_coro = asyncio.iscoroutinefunction(callback)
+
+        def deliver(msg: Any) -> None:
+            try:
+                if is_coro:
+                    self.spawn(callback(msg))
+                else:
+                    callback(msg)
+            except Exception:
+                self.log.exception("handler of %s failed", name)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            msg = decode(sample)
+            if msg is None:
+                return
+            if on_zenoh_thread and not is_coro:
+                try:
+                    callback(msg)
+                except Exception:
+                    self.log.exception("handler of %s failed", name)
+            else:
+                self.loop.call_soon_threadsafe(deliver, msg)
+
+        key = self.keys(name)
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        if latched:
+
+            def on_reply(reply: zenoh.Reply) -> None:
+                if reply.ok is not None:
+                    on_sample(reply.ok)
+
+            self.session.get(key, on_reply, timeout=2.0)
+
+    def subscription(self, name: str, *, maxlen: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
+        """An async iterator over messages on ``name`` keeping at most ``maxlen`` unread (oldest dropped)."""
+        queue: collections.deque[Any] = collections.deque(maxlen=maxlen)
+        ready = asyncio.Event()
+
+        def push(msg: Any) -> None:
+            queue.append(msg)
+            ready.set()
+
+        self.subscribe(name, push, **kwargs)
+
+        async def iterate() -> AsyncIterator[Any]:
+            while True:
+                await ready.wait()
+                while queue:
+                    yield queue.popleft()
+                ready.clear()
+
+        return iterate()
+
+    # ------------------------------------------------------------------ queries
+
+    def queryable(self, name: str, handler: Callable[[Any], Awaitable[Message] | Message]) -> None:
+        """Serve the query ``name``: ``handler(request)`` (sync or async) returns the reply message.
+
+        A request that does not decode gets ``Reply(ok=False, message=...)`` (or an error reply when the query's
+        reply type is not Reply); an exception in the handler gets an error reply naming it.
+        """
+        req_type, rep_type = codec.query_types(name)
+        key = self.keys(name)
+
+        def send(query: zenoh.Query, reply: Message) -> None:
+            query.reply(key, codec.encode(reply))
+
+        async def run(query: zenoh.Query, request: Message) -> None:
+            try:
+                result = handler(request)
+                if asyncio.iscoroutine(result):
+                    result = await result
+                send(query, result)
+            except Exception as exc:  # the caller gets the reason; the service goes on
+                self.log.exception("query %s failed", name)
+                if rep_type is Reply:
+                    send(query, Reply(ok=False, message=f"{type(exc).__name__}: {exc}"))
+                else:
+                    query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+
+        def on_query(query: zenoh.Query) -> None:
+            raw = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                request = codec.decode_as(req_type, raw, key) if raw else _default_request(req_type, key)
+            except codec.ProtoDecodeError as exc:
+                self.loop.call_soon_threadsafe(self._bad_payload, key, exc)
+                if rep_type is Reply:
+                    query.reply(key, codec.encode(Reply(ok=False, message=str(exc))))
+                else:
+                    query.reply_err(str(exc).encode())
+                return
+            self.loop.call_soon_threadsafe(lambda: self.spawn(run(query, request)))
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    async def query(self, name: str, request: Message | None = None, *, timeout_s: float = 2.0) -> Any:
+        """Send a query and return the first reply decoded as the query's reply type; raises QueryError."""
+        return await query(self.session, self.keys, name, request, timeout_s=timeout_s)
+
+    # ------------------------------------------------------------------ lifetime
+
+    def close(self) -> None:
+        for d in [*reversed(self._declared), self._stats, self._token]:
+            with contextlib.suppress(Exception):  # already gone with the session
+                (d.close if isinstance(d, TopicPublisher) else d.undeclare)()
+        self._declared.clear()
+
+
+def _default_request(t: type[T], key: str) -> T:
+    """The request for an empty query payload: ``t()`` when every field has a default."""
+    try:
+        return t()
+    except TypeError:
+        raise codec.ProtoDecodeError(key, t.__name__, "empty payload; this query needs arguments") from None
+
+
+async def query(
+    session: zenoh.Session, keys: Keys, name: str, request: Message | None = None, *, timeout_s: float = 2.0
+) -> Any:
+    """Query ``name`` on ``session`` from asyncio; the reply is decoded as the registered reply type."""
+    req_type, rep_type = codec.query_types(name)
+    key = keys(name)
+    loop = asyncio.get_running_loop()
+    fut: asyncio.Future[Any] = loop.create_future()
+    payload = codec.encode(request if request is not None else req_type())
+
+    def settle(value: Any, is_error: bool) -> None:
+        if not fut.done():
+            (fut.set_exception if is_error else fut.set_result)(value)
+
+    def on_reply(reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            try:
+                msg = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
+                loop.call_soon_threadsafe(settle, msg, False)
+            except codec.ProtoDecodeError as exc:
+                loop.call_soon_threadsafe(settle, QueryError(str(exc)), True)
+        else:
+            text = reply.err.payload.to_bytes().decode(errors="replace")
+            loop.call_soon_threadsafe(settle, QueryError(f"{key}: {text}"), True)
+
+    def on_done() -> None:
+        error = QueryError(f"no reply to {key} (no queryable answered within {timeout_s} s)")
+        loop.call_soon_threadsafe(settle, error, True)
+
+    session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=payload, timeout=timeout_s)
+    return await fut

@@ -1,0 +1,172 @@
+"""Entry point shared by every service: arguments, config, session, clock, node, signals, systemd.
+
+Each service's ``__main__`` calls ``service_main("drive", {"drive": DriveConfig}, run)`` where
+``run(ctx)`` is its async main. Common options: ``--config FILE`` (robot TOML), ``--robot-id``,
+``--connect ENDPOINT`` (repeatable), ``--use-sim-time``, ``--check-config`` (validate and exit).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import signal
+import sys
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+
+from proto.keys import Keys
+from services.common import systemd
+from services.common.clock import SimClock, WallClock
+from services.common.config import ConfigError
+from services.common.lifetime import die_with_parent
+from services.common.logs import setup_logging
+from services.common.node import Node
+from services.common.robot import RobotSpec
+from services.common.session import open_session
+from services.common.settings import ClockSettings, ZenohSettings
+
+log = logging.getLogger("zagv.service")
+
+
+@dataclass
+class ServiceContext:
+    """What a service's main gets: its node, the robot spec and its validated config tables."""
+
+    node: Node
+    robot: RobotSpec
+    config: dict[str, Any]
+    config_path: str | None
+    stop: asyncio.Event = field(default_factory=asyncio.Event)
+
+    @property
+    def clock(self):  # noqa: ANN201 - Clock protocol
+        return self.node.clock
+
+
+def parse_args(name: str, argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog=f"python -m services.{name}", description=f"zagv {name} service")
+    p.add_argument("--config", help="robot TOML file (default: built-in defaults)")
+    p.add_argument("--robot-id", help="robot id, the <id> of agv/<id>/... (default: [robot] robot_id)")
+    p.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--use-sim-time", action="store_true", default=None, help="follow the simulator's clock topic")
+    p.add_argument("--check-config", action="store_true", help="validate the configuration and exit")
+    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+                   help="override one config value (TOML literal), e.g. --set lidar.port=2112")
+    return p.parse_args(argv)
+
+
+def load_config(
+    name: str, sections: dict[str, type], args: argparse.Namespace
+) -> tuple[RobotSpec, ZenohSettings, ClockSettings, dict[str, Any]]:
+    import tomllib
+
+    from services.common.config import check_sections, convert_section, read_toml
+
+    data = read_toml(args.config) if args.config else {}
+    source = f"config {args.config}" if args.config else "config"
+    for item in args.set:
+        if "=" not in item or "." not in item.split("=", 1)[0]:
+            raise ConfigError(f"--set {item!r}: expected TABLE.KEY=VALUE")
+        dotted, value = item.split("=", 1)
+        table, key = dotted.split(".", 1)
+        try:
+            parsed = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            parsed = value
+        data.setdefault(table, {})[key] = parsed
+    check_sections(data, source)
+    robot = convert_section(data, "robot", RobotSpec, source)
+    zenoh_settings = convert_section(data, "zenoh", ZenohSettings, source)
+    clock_settings = convert_section(data, "clock", ClockSettings, source)
+    tables = {sec: convert_section(data, sec, t, source) for sec, t in sections.items()}
+    if args.robot_id:
+        robot = msgspec.structs.replace(robot, robot_id=args.robot_id)
+    if args.connect:
+        zenoh_settings.connect = list(args.connect)
+    if args.use_sim_time:
+        clock_settings.use_sim_time = True
+    return robot, zenoh_settings, clock_settings, tables
+
+
+def service_main(
+    name: str,
+    sections: dict[str, type],
+    run: Callable[[ServiceContext], Awaitable[None]],
+    argv: list[str] | None = None,
+) -> None:
+    """Parse arguments, validate config, then run ``run(ctx)`` until it returns or SIGINT/SIGTERM arrives."""
+    die_with_parent()
+    args = parse_args(name, argv)
+    setup_logging(name)
+    try:
+        robot, zenoh_settings, clock_settings, tables = load_config(name, sections, args)
+        Keys(robot.robot_id)
+    except (ConfigError, ValueError) as exc:
+        print(f"zagv {name}: {exc}", file=sys.stderr)
+        sys.exit(2)
+    if args.check_config:
+        print(f"zagv {name}: config ok")
+        return
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(_amain(name, run, robot, zenoh_settings, clock_settings, tables, args.config))
+
+
+async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, config_path) -> None:  # noqa: ANN001
+    loop = asyncio.get_running_loop()
+    session = open_session(zenoh_settings)
+    clock = SimClock() if clock_settings.use_sim_time else WallClock()
+    node = Node(name, session, Keys(robot.robot_id), clock)
+    ctx = ServiceContext(node=node, robot=robot, config=tables, config_path=config_path)
+    main = asyncio.current_task()
+    stopping = False
+
+    def on_signal(signum: int) -> None:
+        nonlocal stopping
+        if not stopping:
+            stopping = True
+            log.info("%s: %s, stopping", name, signal.Signals(signum).name)
+            ctx.stop.set()
+            assert main is not None
+            loop.call_later(5.0, main.cancel)  # a service that ignores ctx.stop is cancelled
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, on_signal, sig)
+    watchdog = None
+    period = systemd.watchdog_period_s()
+    if period:
+        async def feed() -> None:
+            while True:
+                systemd.notify("WATCHDOG=1")
+                await asyncio.sleep(period)
+
+        watchdog = loop.create_task(feed())
+    systemd.notify("READY=1")
+    node.log.info("started (robot %s, %s clock)", robot.robot_id, "sim" if clock_settings.use_sim_time else "wall")
+    runner = loop.create_task(run(ctx))
+    stopper = loop.create_task(ctx.stop.wait())
+    try:
+        done, _ = await asyncio.wait({runner, stopper}, return_when=asyncio.FIRST_COMPLETED)
+        if runner in done:
+            runner.result()
+        else:
+            # give the service a moment to finish on its own (it sees ctx.stop), then cancel it
+            with contextlib.suppress(TimeoutError, asyncio.CancelledError):
+                await asyncio.wait_for(asyncio.shield(runner), 2.0)
+            runner.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await runner
+    except asyncio.CancelledError:
+        runner.cancel()
+    finally:
+        stopper.cancel()
+        if watchdog:
+            watchdog.cancel()
+        systemd.notify("STOPPING=1")
+        node.close()
+        session.close()
+        node.log.info("stopped")

@@ -1,0 +1,26 @@
+"""Settings every service shares: the Zenoh connection and the clock source."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+
+class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
+    """How a process joins the robot's Zenoh network ([zenoh] table).
+
+    Multicast scouting is always off: sessions connect to the explicit ``connect`` endpoints only.
+    ``config_file`` (json5) is applied first, then these keys.
+    """
+
+    mode: Literal["client", "peer", "router"] = "client"
+    connect: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = msgspec.field(default_factory=list)
+    config_file: str = ""
+
+
+class ClockSettings(msgspec.Struct, forbid_unknown_fields=True):
+    """Clock source ([clock] table): wall time, or the simulator's ``clock`` topic when ``use_sim_time``."""
+
+    use_sim_time: bool = False

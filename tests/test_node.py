@@ -1,0 +1,103 @@
+"""The asyncio bridge against a real router on loopback: typed pub/sub, bad payloads, queries, latching."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from proto import Keys, encode
+from proto.messages import Empty, OccupancyGrid, Pose2D, Reply, Twist2D
+from services.common.node import Node, QueryError
+from services.common.session import open_session, router_settings
+from services.common.settings import ZenohSettings
+from tests.support.waiting import wait_for
+
+
+@pytest.fixture
+def router(free_port):
+    endpoint = f"tcp/127.0.0.1:{free_port}"
+    session = open_session(router_settings([endpoint]))
+    yield endpoint
+    session.close()
+
+
+@pytest.fixture
+def client(router):
+    sessions = []
+
+    def make():
+        s = open_session(ZenohSettings(connect=[router]))
+        sessions.append(s)
+        return s
+
+    yield make
+    for s in sessions:
+        s.close()
+
+
+async def test_typed_pubsub_and_bad_payload_is_counted(client):
+    keys = Keys("t1")
+    a = Node("a", client(), keys)
+    b = Node("b", client(), keys)
+    got: list[Twist2D] = []
+    b.subscribe("cmd_vel", got.append)
+    pub = a.publisher("cmd_vel")
+    raw = a.session.declare_publisher(keys("cmd_vel"))
+    await wait_for(lambda: (pub.put(Twist2D(vx=0.1)), bool(got))[1], timeout_s=5)
+    raw.put(b"\xc1 not msgpack")
+    raw.put(encode(Pose2D(x=1.0)))
+    await wait_for(lambda: b.bad_payloads[keys("cmd_vel")] == 2, timeout_s=5)
+    n = len(got)
+    pub.put(Twist2D(vx=0.2))
+    await wait_for(lambda: len(got) > n and got[-1].vx == 0.2, timeout_s=5)
+    a.close()
+    b.close()
+
+
+async def test_query_reply_and_errors(client):
+    keys = Keys("t2")
+    server = Node("srv", client(), keys)
+    caller = Node("cli", client(), keys)
+
+    async def enable(req: Empty) -> Reply:
+        await asyncio.sleep(0)
+        return Reply(ok=True, message="enabled")
+
+    def boom(req: Empty) -> Reply:
+        raise RuntimeError("controller offline")
+
+    server.queryable("drive/enable", enable)
+    server.queryable("drive/estop", boom)
+    reply = await wait_for_reply(caller, "drive/enable")
+    assert reply == Reply(ok=True, message="enabled")
+    reply = await caller.query("drive/estop")
+    assert not reply.ok and "controller offline" in reply.message
+    with pytest.raises(QueryError):
+        await caller.query("drive/release", timeout_s=0.3)
+    server.close()
+    caller.close()
+
+
+async def wait_for_reply(node: Node, name: str):
+    last: Exception | None = None
+    for _ in range(50):
+        try:
+            return await node.query(name, timeout_s=0.5)
+        except QueryError as exc:
+            last = exc
+    raise AssertionError(f"no reply: {last}")
+
+
+async def test_latched_topic_reaches_late_joiner(client):
+    keys = Keys("t3")
+    pub_node = Node("map_server", client(), keys)
+    pub = pub_node.publisher("map", latched=True)
+    pub.put(OccupancyGrid(width=2, height=1, data=bytes([0, 100])))
+    late = Node("late", client(), keys)
+    got: list[OccupancyGrid] = []
+    await wait_for(lambda: (got or late.subscribe("map", got.append, latched=True)) and bool(got), timeout_s=5,
+                   poll_s=0.5)
+    assert got[0].width == 2
+    pub_node.close()
+    late.close()
