@@ -1,0 +1,83 @@
+"""``zagv bench [--only PREFIX] [--json FILE]``: run the benchmark groups and print a table.
+
+Groups come from ``services/<name>/bench.py`` and ``services/cli/bench_*.py`` modules (see services.common.bench).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import pkgutil
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+
+from services.common.bench import BenchRow
+
+SERVICES_DIR = Path(__file__).resolve().parents[1]
+
+
+def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
+    """Every (group, function) pair, cheapest first as each module lists them."""
+    modules = [f"services.cli.{m.name}" for m in pkgutil.iter_modules([str(SERVICES_DIR / "cli")])
+               if m.name.startswith("bench_")]
+    modules += [f"services.{d.name}.bench" for d in sorted(SERVICES_DIR.iterdir())
+                if (d / "bench.py").is_file()]
+    groups = []
+    for name in modules:
+        module = importlib.import_module(name)
+        groups.extend(getattr(module, "BENCHES", []))
+    return groups
+
+
+def selected(group: str, only: str | None) -> bool:
+    return only is None or group.startswith(only) or only.startswith(group)
+
+
+def format_table(rows: list[BenchRow]) -> str:
+    w = max([len(r.name) for r in rows] + [4])
+    lines = [f"{'name':<{w}}  {'value':>12}  {'unit':<8}  goal", "-" * (w + 36)]
+    for r in rows:
+        lines.append(f"{r.name:<{w}}  {r.value:>12.4g}  {r.unit:<8}  {r.goal}")
+    return "\n".join(lines)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run benchmarks and print a table")
+    p.add_argument("--only", help="run only groups/rows starting with this prefix (e.g. zenoh, amcl)")
+    p.add_argument("--json", help="also write {\"rows\": [...]} to this file")
+    p.add_argument("--list", action="store_true", help="list the groups and exit")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    groups = discover()
+    if args.list:
+        for g, _ in groups:
+            print(g)
+        return 0
+    rows: list[BenchRow] = []
+    failed = []
+    for group, fn in groups:
+        if not selected(group, args.only):
+            continue
+        print(f"bench: {group} ...", file=sys.stderr, flush=True)
+        try:
+            rows.extend(r for r in fn() if args.only is None or selected(r.name, args.only) or
+                        selected(group, args.only))
+        except Exception:
+            failed.append(group)
+            traceback.print_exc()
+    if not rows and not failed:
+        print(f"zagv bench: no benchmark matches {args.only!r}", file=sys.stderr)
+        return 2
+    print(format_table(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(
+            {"rows": [{"name": r.name, "value": r.value, "unit": r.unit, "goal": r.goal} for r in rows]}, indent=2))
+    if failed:
+        print(f"zagv bench: failed groups: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
