@@ -23,7 +23,7 @@ class MotorUnits:
     """Conversion constants of one module; ``*_sign`` is +1 or -1 for the motor's mounting direction."""
 
     wheel_radius_m: float = 0.1
-    gear_ratio: float = 20.0
+    gear_ratio: float = 30.0
     traction_counts_per_rev: float = 4096.0
     steer_counts_per_rev: float = 4096.0 * 50.0
     steer_zero_counts: int = 0
