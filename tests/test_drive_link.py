@@ -104,6 +104,7 @@ def test_link_start_up_maps_pdos_and_reads_feedback(rig: Rig) -> None:
     link = RoboteqLink(link_settings(rig))
     link.open()
     try:
+        link.poll()
         assert link.health() == ""
         for n in rig.nodes:
             assert n.state == 0x05  # NMT started
@@ -111,7 +112,7 @@ def test_link_start_up_maps_pdos_and_reads_feedback(rig: Rig) -> None:
             assert [p.mapping for p in n.tpdos] == [list(m) for m in TPDO_MAPS]
         with rig.lock:
             rig.nodes[0].steer.position_counts = rig.nodes[0].steer.target_counts = 51200.0  # a quarter turn
-        wait_for_sync(lambda: link.feedback()[0].steer_counts == 51200, timeout_s=2)
+        wait_for_sync(lambda: link.poll() >= 0 and link.feedback()[0].steer_counts == 51200, timeout_s=2)
     finally:
         link.close()
 

@@ -16,12 +16,15 @@ PDO layout (protocols.md §1.9, with the paper's units: eq. 7 rpm, eq. 8 counts)
 | TPDO3 (0x380+n)   | 0x2100.1 / 0x2100.2 ``?A`` amps x10 S16, 0x2112.0 ``?FF`` U16, 0x2111.0 ``?FS`` U16 | 8 |
 | TPDO4 (0x480+n)   | 0x210D.2 battery V x10 U16, 0x2122.1 / 0x2122.2 ``?FM`` U16, 0x210F.1 MCU temp S16 | 8 |
 
+TPDO1/2 are requested every ``tpdo_period_ms`` (20), TPDO3/4 every ``tpdo_slow_period_ms`` (100) with
+transmission type 255 and the event timer 0x1800+k.5 (on a real RoboteQ the rate may only be settable by CTPS).
 Every control cycle sends RPDO1 to each node, so the controller's command watchdog (``RWD``) stays fed; when the
 drive stops sending (crash, lost bus) the controller stops the motors by itself. E-stop ``!EX`` = SDO write 1 to
 0x200C.0, release ``!MG`` = SDO write 1 to 0x200D.0.
 
-Threads: python-can's notifier thread decodes TPDOs and heartbeats into per-node snapshots (tuple swaps, no
-locks); the control thread sends RPDOs and checks ``health``; SDO work (start-up, e-stop) is serialised by a lock.
+Threads: after start-up the control thread does all CAN I/O: ``poll`` dispatches received frames (TPDOs and
+heartbeats into per-node snapshots, SDO replies to a waiting SDO client), ``send`` writes RPDOs, ``health`` judges
+the link. SDO work from other threads (e-stop, release) is serialised by a lock and answered through ``poll``.
 Link health is judged on the monotonic wall clock (a real bus runs on wall time, whatever the simulator's speed).
 """
 
@@ -86,7 +89,8 @@ class LinkSettings:
     feedback_timeout_s: float = 0.5
     sdo_timeout_s: float = 0.3
     configure_pdos: bool = True
-    tpdo_period_ms: int = 10
+    tpdo_period_ms: int = 20
+    tpdo_slow_period_ms: int = 100
     startup_timeout_s: float = 2.0
 
 
@@ -96,7 +100,7 @@ def mapping_entry(index: int, sub: int, bits: int) -> int:
 
 
 class _NodeState:
-    """Latest frames of one node, written by the notifier thread (each a tuple swap)."""
+    """Latest frames of one node, written where frames are dispatched (each field a tuple swap)."""
 
     def __init__(self) -> None:
         self.heartbeat_at: float | None = None
@@ -124,6 +128,7 @@ class RoboteqLink:
         self.states = [_NodeState() for _ in settings.node_ids]
         self.frames_sent = 0
         self.send_errors = 0
+        self.error_frames = 0
         self._sdo_lock = threading.Lock()
         self._rpdo_ids = [RPDO_COB[0] + n for n in settings.node_ids]
         self._error: str = ""
@@ -131,14 +136,19 @@ class RoboteqLink:
     # ------------------------------------------------------------------ lifetime
 
     def open(self) -> None:
-        """Connect and start the nodes; raises LinkError naming the failed step (the link is then closed)."""
+        """Connect and start the nodes; raises LinkError naming the failed step (the link is then closed).
+
+        During start-up a python-can notifier thread dispatches the replies; afterwards the link is *polled*:
+        the control thread reads every pending frame at the start of its cycle (``poll``), so one thread does all
+        CAN I/O and no receive thread competes with it for the interpreter.
+        """
         s = self.settings
         try:
             kwargs = {"interface": s.interface, "channel": s.channel}
             if s.bitrate:
                 kwargs["bitrate"] = s.bitrate
-            network = canopen.Network()
-            network.connect(**kwargs)
+            network = canopen.Network(can.Bus(**kwargs))
+            network.notifier = can.Notifier(network.bus, network.listeners, 0.02)
         except Exception as exc:  # python-can raises many kinds (OSError, CanError, websocket errors)
             raise LinkError(f"cannot open CAN bus {s.interface}:{s.channel}: {type(exc).__name__}: {exc}") from None
         self.network = network
@@ -155,9 +165,13 @@ class RoboteqLink:
                     network.subscribe(cob + node_id, self._tpdo_handler(i, k))
             with self._sdo_lock:
                 for node in self.nodes:
+                    self._configure(node)  # in PRE-OPERATIONAL (or already started: the mapping sequence is safe)
                     node.nmt.send_command(NMT_START)
-                    self._configure(node)
             self._wait_alive(s.startup_timeout_s)
+            notifier, network.notifier = network.notifier, None
+            notifier.stop(1.0)
+            if notifier.exception is not None:
+                raise LinkError(f"CAN bus lost during start-up: {notifier.exception}")
         except LinkError:
             self.close()
             raise
@@ -166,15 +180,40 @@ class RoboteqLink:
             raise LinkError(f"CAN start-up failed: {type(exc).__name__}: {exc}") from None
         log.info("CAN link up on %s:%s, nodes %s", s.interface, s.channel, list(s.node_ids))
 
+    def poll(self, max_frames: int = 256) -> int:
+        """Dispatch every received frame (TPDOs, heartbeats, SDO replies); raises LinkError when the bus fails."""
+        network = self.network
+        if network is None:
+            raise LinkError("CAN link is closed")
+        bus = network.bus
+        n = 0
+        try:
+            while n < max_frames:
+                msg = bus.recv(0.0)
+                if msg is None:
+                    break
+                n += 1
+                if msg.is_error_frame:
+                    self.error_frames += 1
+                    continue
+                if not msg.is_remote_frame:
+                    network.notify(msg.arbitration_id, msg.data, msg.timestamp)
+        except Exception as exc:
+            self._error = f"CAN bus lost: {type(exc).__name__}: {exc}"
+            raise LinkError(self._error) from None
+        return n
+
     def close(self) -> None:
         network, self.network = self.network, None
         self.nodes = []
-        if network is not None:
+        if network is None:
+            return
+        if network.notifier is not None:
             with contextlib.suppress(Exception):
-                network.disconnect()
-            if network.bus is not None:  # disconnect raised before shutting the bus down
-                with contextlib.suppress(Exception):
-                    network.bus.shutdown()
+                network.notifier.stop(1.0)
+        if network.bus is not None:
+            with contextlib.suppress(Exception):
+                network.bus.shutdown()
 
     @property
     def is_open(self) -> bool:
@@ -197,7 +236,7 @@ class RoboteqLink:
         self._map_pdo(node, 0x1400, 0x1600, RPDO_COB[0] + node.id, RPDO1_MAP, trans_type=255, timer_ms=0)
         for k, entries in enumerate(TPDO_MAPS):
             self._map_pdo(node, 0x1800 + k, 0x1A00 + k, TPDO_COB[k] + node.id, entries, trans_type=255,
-                          timer_ms=s.tpdo_period_ms)
+                          timer_ms=s.tpdo_period_ms if k < 2 else s.tpdo_slow_period_ms)
 
     def _map_pdo(self, node: canopen.RemoteNode, comm: int, mapping: int, cob_id: int,
                  entries: Sequence[tuple[int, int, int]], *, trans_type: int, timer_ms: int) -> None:
@@ -236,19 +275,23 @@ class RoboteqLink:
     def _wait_alive(self, timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if all(st.heartbeat_at is not None and st.feedback_at is not None for st in self.states):
+            if all(st.heartbeat_state == HEARTBEAT_OPERATIONAL and st.feedback_at is not None for st in self.states):
                 return
             time.sleep(0.01)
         silent = [n for n, st in zip(self.settings.node_ids, self.states) if st.heartbeat_at is None]
+        stuck = [f"{n} (0x{st.heartbeat_state:02X})" for n, st in zip(self.settings.node_ids, self.states)
+                 if st.heartbeat_state is not None and st.heartbeat_state != HEARTBEAT_OPERATIONAL]
         mute = [n for n, st in zip(self.settings.node_ids, self.states) if st.feedback_at is None]
         what = []
         if silent:
             what.append(f"no heartbeat from node(s) {silent}")
+        if stuck:
+            what.append(f"node(s) {', '.join(stuck)} not OPERATIONAL after NMT start")
         if mute:
             what.append(f"no TPDO feedback from node(s) {mute}")
         raise LinkError(f"{' and '.join(what)} within {timeout_s} s")
 
-    # ------------------------------------------------------------------ frames in (notifier thread)
+    # ------------------------------------------------------------------ frames in (dispatch)
 
     def _heartbeat_handler(self, i: int):  # noqa: ANN202
         state = self.states

@@ -26,7 +26,8 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     feedback_timeout_s: float = 0.5
     sdo_timeout_s: float = 0.3
     configure_pdos: bool = True
-    tpdo_period_ms: int = 10
+    tpdo_period_ms: int = 20
+    tpdo_slow_period_ms: int = 100
     startup_timeout_s: float = 2.0
     reconnect_initial_s: float = 0.2
     reconnect_max_s: float = 2.0
@@ -84,7 +85,8 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
             node_ids=tuple(self.node_ids), heartbeat_period_ms=self.heartbeat_period_ms,
             heartbeat_timeout_s=self.heartbeat_timeout_s, feedback_timeout_s=self.feedback_timeout_s,
             sdo_timeout_s=self.sdo_timeout_s, configure_pdos=self.configure_pdos,
-            tpdo_period_ms=self.tpdo_period_ms, startup_timeout_s=self.startup_timeout_s)
+            tpdo_period_ms=self.tpdo_period_ms,
+            tpdo_slow_period_ms=self.tpdo_slow_period_ms, startup_timeout_s=self.startup_timeout_s)
 
     def motor_units(self) -> list[MotorUnits]:
         return [MotorUnits(wheel_radius_m=self.wheel_radius_m, gear_ratio=self.gear_ratio,

@@ -300,7 +300,11 @@ class DriveLoop:
 
         link = self.link if self.link_ok else None
         if link is not None:
-            reason = link.health()
+            try:
+                link.poll()
+                reason = link.health()
+            except LinkError as exc:
+                reason = str(exc)
             if reason:
                 self._link_lost(reason)
                 link = None
