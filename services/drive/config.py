@@ -33,7 +33,7 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     reconnect_max_s: float = 2.0
 
     # control loop
-    rate_hz: float = 200.0
+    rate_hz: float = 100.0
     spin_s: float = 0.0003
     wake_on_command: bool = True
     cmd_timeout_s: float = 0.2
