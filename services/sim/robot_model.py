@@ -222,21 +222,24 @@ class SlipModel:
 class SwerveRobot:
     """The chassis: modules, true pose (world frame) and true body twist; ``step`` advances physics by dt.
 
-    ``blocked(x, y)`` (set by the simulation) says whether the footprint at (x, y) hits the world; a step into a
-    blocked pose is refused, the body stops and ``collided`` latches until ``teleport``.
+    ``margin(x, y)`` (set by the simulation) is the footprint's clearance from the world at (x, y) in m (negative:
+    overlapping). A step that would overlap more than now is refused: the body stops, and ``collided`` latches
+    until ``teleport``.
     """
 
-    def __init__(self, module_xy: list[tuple[float, float]], units: MotorUnits, slip: SlipModel | None = None
-                 ) -> None:
-        self.units = units
-        self.modules = [SwerveModule(x, y, units) for x, y in module_xy]
+    def __init__(self, module_xy: list[tuple[float, float]], units: MotorUnits | list[MotorUnits],
+                 slip: SlipModel | None = None) -> None:
+        units_list = units if isinstance(units, list) else [units] * len(module_xy)
+        if len(units_list) != len(module_xy):
+            raise ValueError("one MotorUnits per module")
+        self.modules = [SwerveModule(x, y, u) for (x, y), u in zip(module_xy, units_list)]
         p = lsq_twist_matrix(module_xy)
         self._p = [list(map(float, row)) for row in p]
         self.slip = slip or SlipModel()
         self.x = self.y = self.theta = 0.0
         self.vx = self.vy = self.wz = 0.0
         self.collided = False
-        self.blocked = lambda x, y: False
+        self.margin = lambda x, y: math.inf
 
     def teleport(self, x: float, y: float, theta: float) -> None:
         self.x, self.y, self.theta = x, y, (theta + math.pi) % TWO_PI - math.pi
@@ -246,10 +249,9 @@ class SwerveRobot:
     def wheel_ground_velocities(self) -> list[float]:
         """Stacked (vx_i, vy_i) ground velocities of the wheels in base_link (m/s), slip applied."""
         out: list[float] = []
-        units = self.units
         for m in self.modules:
-            v = units.rpm_to_mps(m.traction.speed_rpm) * self.slip.factor()
-            a = units.counts_to_rad(m.steer.position_counts)
+            v = m.units.rpm_to_mps(m.traction.speed_rpm) * self.slip.factor()
+            a = m.units.counts_to_rad(m.steer.position_counts)
             out.append(v * math.cos(a))
             out.append(v * math.sin(a))
         return out
@@ -263,13 +265,13 @@ class SwerveRobot:
         vx = sum(a * b for a, b in zip(p[0], w))
         vy = sum(a * b for a, b in zip(p[1], w))
         wz = sum(a * b for a, b in zip(p[2], w))
-        if self.collided:
-            self.vx = self.vy = self.wz = 0.0
-            return
         x, y, th = integrate_se2(self.x, self.y, self.theta, vx, vy, wz, dt)
-        if (vx or vy) and self.blocked(x, y):
-            self.collided = True
-            self.vx = self.vy = self.wz = 0.0
-            return
+        if vx or vy:
+            margin = self.margin(x, y)
+            if margin < 0.0 and margin <= self.margin(self.x, self.y):
+                # contact: the chassis does not move deeper into the obstacle (moving away stays possible)
+                self.collided = True
+                self.vx = self.vy = self.wz = 0.0
+                return
         self.x, self.y, self.theta = x, y, th
         self.vx, self.vy, self.wz = vx, vy, wz
