@@ -77,6 +77,9 @@ def odometry_message(snap: Snapshot) -> Odometry:
 
 async def run(ctx: ServiceContext) -> None:
     cfg: DriveConfig = ctx.config["drive"]
+    logging.getLogger("canopen").setLevel(logging.WARNING)
+    logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)  # our LinkError says what failed
+    logging.getLogger("can").setLevel(logging.WARNING)
     node = ctx.node
     sim = bool(getattr(ctx.clock, "is_sim", False))
     ticker: WallTicker | SimTicker = SimTicker(cfg.rate_hz) if sim else WallTicker(cfg.rate_hz, cfg.spin_s)
