@@ -99,6 +99,30 @@ class Driver:
             assert time.monotonic() < deadline, "the simulator clock stalled"
         return last
 
+    def odom_pose(self) -> tuple[float, float, float]:
+        o = self.odom
+        return (o.pose.x, o.pose.y, o.pose.theta)
+
+    def forward(self, dist_m: float, gain: float = 1.5) -> None:
+        """Drive straight ahead by ``dist_m`` as odometry measures it (proportional approach, then stop)."""
+        start = self.odom_pose()
+        deadline = time.monotonic() + dist_m / 0.2 / SPEED * 4 + 20
+        while (remaining := dist_m - relative(start, self.odom_pose())[0]) > 0.002:
+            self.send(min(0.2, max(0.01, gain * remaining)), 0.0, 0.0)
+            time.sleep(0.01)
+            assert time.monotonic() < deadline, "forward() did not arrive"
+        self.settle(0.8)
+
+    def turn(self, angle_rad: float, gain: float = 2.0) -> None:
+        """Turn in place by ``angle_rad`` as odometry measures it."""
+        start = self.odom_pose()
+        deadline = time.monotonic() + abs(angle_rad) / 0.5 / SPEED * 4 + 20
+        while abs(err := angle_rad - relative(start, self.odom_pose())[2]) > 0.002:
+            self.send(0.0, 0.0, math.copysign(min(0.5, max(0.02, gain * abs(err))), err))
+            time.sleep(0.01)
+            assert time.monotonic() < deadline, "turn() did not arrive"
+        self.settle(0.8)
+
     def settle(self, sim_s: float = 1.0) -> None:
         self.drive(0.0, 0.0, 0.0, sim_s)
 
@@ -116,6 +140,8 @@ class Driver:
                                                                                               theta=theta))),
                                         timeout=5.0))
         assert replies and replies[0].ok is not None, "sim/teleport did not answer"
+        wait_for_sync(lambda: math.hypot(self.truth.pose.x - x, self.truth.pose.y - y) < 0.01, timeout_s=10,
+                      message="the teleport never showed in sim/ground_truth")
 
 
 @pytest.mark.slow
@@ -129,11 +155,10 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     odom0, true0 = d.poses()
     path0 = d.path_m
     for _ in range(4):
-        d.drive(0.2, 0.0, 0.0, 2.5 / 0.2 + 0.4)
-        d.settle(0.8)
-        d.drive(0.0, 0.0, 0.5, math.pi / 2 / 0.5 + 0.5)
-        d.settle(0.8)
+        d.forward(2.5)
+        d.turn(math.pi / 2)
         odom, true = d.poses()
+        assert not d.truth.collided
         ro, rt = relative(odom0, odom), relative(true0, true)
         travelled = d.path_m - path0
         err = math.hypot(ro[0] - rt[0], ro[1] - rt[1])
@@ -150,7 +175,6 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     rt, ro = relative(true0, true), relative(odom0, odom)
     assert rt[1] == pytest.approx(1.0, abs=0.06) and abs(rt[0]) < 0.03 and abs(rt[2]) < 0.01
     assert math.hypot(ro[0] - rt[0], ro[1] - rt[1]) <= 0.01 * 1.0 + 0.005
-    assert all(abs(abs(m.steer_rad) - math.pi / 2) < 0.02 for m in d.wheel_log[-5].modules[:2]) or True
 
     # turning in place: heading changes, position does not
     odom0, true0 = d.poses()
@@ -158,18 +182,23 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     d.settle(0.8)
     odom, true = d.poses()
     rt, ro = relative(true0, true), relative(odom0, odom)
-    assert math.hypot(rt[0], rt[1]) < 0.03 and rt[2] == pytest.approx(-1.25, abs=0.15)
+    assert math.hypot(rt[0], rt[1]) < 0.03 and -1.8 < rt[2] < -1.2  # 3 s at -0.5 rad/s, ramps and coasting
     assert abs(ro[2] - rt[2]) < 0.01
 
-    # cmd_vel stops: wheels stop within cmd_timeout + the deceleration the limits need
-    last_cmd = d.drive(0.2, 0.0, 0.0, 3.0)
+    # cmd_vel stops: wheels stop within cmd_timeout + the deceleration the limits need. The test knows the sim time
+    # of its last command only within [sent_lo, sent_hi] (clock messages arrive late under load).
+    sent_lo = d.drive(0.2, 0.0, 0.0, 3.0)
+    time.sleep(0.02)
+    sent_hi = d.sim_now
     d.wait_sim(2.0)
-    stopped = [g.stamp for g in d.truth_log if g.stamp > last_cmd and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
-    assert stopped, "the robot never stopped after cmd_vel ended"
-    stop_delay = stopped[0] - last_cmd
     cmd_timeout, decel = 0.2, 0.2 / 0.5
-    assert cmd_timeout <= stop_delay + 0.03, f"stopped {stop_delay:.2f} s after the last command: too early"
-    assert stop_delay <= cmd_timeout + decel + 0.15, f"stopped only {stop_delay:.2f} s after the last command"
+    ramp = [w.stamp for w in d.wheel_log if w.stamp > sent_lo and w.modules[0].speed_cmd_mps < 0.199]
+    stopped = [g.stamp for g in d.truth_log if g.stamp > sent_lo and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
+    assert ramp and stopped, "the robot never stopped after cmd_vel ended"
+    assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the last cmd"
+    assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the last cmd"
+    # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs
+    assert decel - 0.1 <= stopped[0] - ramp[0] <= decel + 0.1, f"took {stopped[0] - ramp[0]:.2f} s to stop"
 
 
 def test_drive_killed_controllers_stop_through_their_watchdog(stack_factory) -> None:

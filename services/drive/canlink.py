@@ -25,7 +25,9 @@ drive stops sending (crash, lost bus) the controller stops the motors by itself.
 Threads: after start-up the control thread does all CAN I/O: ``poll`` dispatches received frames (TPDOs and
 heartbeats into per-node snapshots, SDO replies to a waiting SDO client), ``send`` writes RPDOs, ``health`` judges
 the link. SDO work from other threads (e-stop, release) is serialised by a lock and answered through ``poll``.
-Link health is judged on the monotonic wall clock (a real bus runs on wall time, whatever the simulator's speed).
+Link health (heartbeat and feedback ages) is judged on ``clock``: the monotonic wall clock on a robot, the
+simulator's clock under ``use_sim_time`` (the emulated controllers produce their heartbeats in sim time, so a
+simulator that stalls under load is not mistaken for a dead controller; a closed bus still fails at once).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import logging
 import struct
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import can
@@ -116,13 +118,14 @@ class _NodeState:
 class RoboteqLink:
     """Both controllers on one bus. ``open`` (blocking, may raise LinkError), then ``send`` each cycle."""
 
-    def __init__(self, settings: LinkSettings) -> None:
+    def __init__(self, settings: LinkSettings, clock: Callable[[], float] = time.monotonic) -> None:
         if not settings.node_ids:
             raise ValueError("at least one node id is needed")
         if len(set(settings.node_ids)) != len(settings.node_ids) or not all(
                 1 <= n <= 127 for n in settings.node_ids):
             raise ValueError(f"node ids must be distinct and in 1..127, got {list(settings.node_ids)}")
         self.settings = settings
+        self.clock = clock
         self.network: canopen.Network | None = None
         self.nodes: list[canopen.RemoteNode] = []
         self.states = [_NodeState() for _ in settings.node_ids]
@@ -298,7 +301,7 @@ class RoboteqLink:
 
         def on_heartbeat(can_id: int, data: bytearray, timestamp: float) -> None:
             st = state[i]
-            st.heartbeat_at = time.monotonic()
+            st.heartbeat_at = self.clock()
             st.heartbeat_state = data[0] & 0x7F if data else None
 
         return on_heartbeat
@@ -316,7 +319,7 @@ class RoboteqLink:
                 return
             setattr(st, field, layout.unpack(data))
             if k == 0:
-                st.feedback_at = time.monotonic()
+                st.feedback_at = self.clock()
 
         return on_tpdo
 
@@ -353,7 +356,7 @@ class RoboteqLink:
         notifier = self.network.notifier
         if notifier is not None and notifier.exception is not None:
             return f"CAN bus lost: {type(notifier.exception).__name__}: {notifier.exception}"
-        now = time.monotonic()
+        now = self.clock()
         s = self.settings
         for node_id, st in zip(s.node_ids, self.states):
             if st.heartbeat_at is None or now - st.heartbeat_at > s.heartbeat_timeout_s:

@@ -12,8 +12,8 @@ from services.drive.units import MotorUnits
 
 
 class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
-    """Drive service settings. Times in s (sim seconds under ``use_sim_time``, except the CAN link's health
-    timeouts, which are wall seconds like the bus itself); angles in rad; speeds in m/s.
+    """Drive service settings. Times in s (sim seconds under ``use_sim_time``, except SDO, start-up and reconnect
+    times, which are wall seconds like the bus itself); angles in rad; speeds in m/s.
     """
 
     # CAN link (python-can interface + channel; "remote" + ws://... is the simulated bus)

@@ -311,8 +311,9 @@ class DriveLoop:
         feedback: list[ModuleFeedback] = link.feedback() if link is not None else []
         angles = [u.counts_to_rad(f.steer_counts) for u, f in zip(self.controller.units, feedback)]
         if link is not None and self._needs_reset:
+            # motion restarts from rest; odometry keeps its count baseline, so what the wheels did while the link
+            # was down is still integrated (a restarted counter shows as an implausible step and is re-baselined)
             self.controller.reset(angles)
-            self.odometry.rebaseline()
             self._needs_reset = False
         self.flag_fault = self._check_flags(feedback)
 

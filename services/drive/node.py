@@ -47,7 +47,7 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> D
                             imu_yaw_weight=cfg.imu_yaw_weight, imu_timeout_s=cfg.imu_timeout_s,
                             wake_on_command=cfg.wake_on_command)
     link_settings = cfg.link_settings()
-    return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings), ticker, settings,
+    return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings, ticker.now), ticker, settings,
                      enabled=cfg.auto_enable)
 
 
