@@ -18,6 +18,7 @@ import collections
 import contextlib
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -176,6 +177,7 @@ class LoopSettings:
     imu_yaw_weight: float = 1.0
     imu_timeout_s: float = 0.2
     wake_on_command: bool = True
+    realtime_priority: int = 0
 
 
 @dataclass(frozen=True)
@@ -274,6 +276,13 @@ class DriveLoop:
             link.close()
 
     def _run(self) -> None:
+        prio = self.settings.realtime_priority
+        if prio > 0:
+            try:  # Linux: applies to the calling thread only
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+                log.info("control thread runs SCHED_FIFO priority %d", prio)
+            except (OSError, AttributeError) as exc:
+                log.warning("cannot give the control thread real-time priority %d: %s", prio, exc)
         while not self._stop.is_set():
             now, periodic = self.ticker.wait(self._stop)
             if self._stop.is_set():

@@ -45,7 +45,7 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> D
                             reconnect_initial_s=cfg.reconnect_initial_s, reconnect_max_s=cfg.reconnect_max_s,
                             fault_mask=cfg.fault_mask, imu_yaw_fusion=cfg.imu_yaw_fusion,
                             imu_yaw_weight=cfg.imu_yaw_weight, imu_timeout_s=cfg.imu_timeout_s,
-                            wake_on_command=cfg.wake_on_command)
+                            wake_on_command=cfg.wake_on_command, realtime_priority=cfg.realtime_priority)
     link_settings = cfg.link_settings()
     return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings, ticker.now), ticker, settings,
                      enabled=cfg.auto_enable)

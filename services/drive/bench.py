@@ -1,0 +1,209 @@
+"""Drive benchmarks: kinematics cost, and the control loop at a 1 kHz target against the simulated CAN bus.
+
+``kinematics.ik_fk_us``: one inverse + least-squares forward kinematics of the two-module chassis (median, us);
+``kinematics.command_us``: one full command path (limits, IK, optimisation, motor units) plus one odometry update.
+
+The ``drive`` group starts its own processes on free loopback ports: a Zenoh router (in this process), the
+simulated CAN bus (``services.sim.canbus``), the simulator (its emulated RoboteQ controllers, wall-paced at 1x)
+and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
+
+- ``drive.loop_hz`` / ``drive.jitter_p99_ms``: the loop's own measurement (``wheels``: mean rate and p99 of
+  |period - 1 ms| over its last 2000 periods) after ``settle_s`` of running without commands.
+- ``drive.cmd_to_can_p99_ms``: ``cmd_vel`` put by a Zenoh client (through the router, as nav publishes it) until
+  the RPDO1 frame carrying the new traction speed is received by a CAN client on the simulated bus. The command
+  alternates between +vy and -vy (the wheels stay at 90 deg, the speed changes sign) and the acceleration limits
+  are raised for this run, so the very first RPDO after the command differs.
+"""
+
+from __future__ import annotations
+
+import bisect
+import contextlib
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from proto import codec
+from proto.keys import Keys
+from proto.messages import Twist2D, WheelStates
+from services.common.bench import BenchRow, time_calls
+from services.common.robot import RobotSpec
+from services.common.session import open_session, router_settings
+from services.common.settings import ZenohSettings
+from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
+from services.drive.kinematics import SwerveKinematics, Twist
+from services.drive.limits import TwistLimits
+from services.drive.units import MotorUnits
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def bench_kinematics() -> list[BenchRow]:
+    robot = RobotSpec()
+    kin = SwerveKinematics([(m.x_m, m.y_m) for m in robot.modules])
+    twist = Twist(0.12, -0.07, 0.3)
+
+    def ik_fk() -> None:
+        kin.to_twist(kin.to_module_states(twist))
+
+    units = [MotorUnits(), MotorUnits()]
+    ctl = DriveController(kin, units, TwistLimits.from_robot(robot))
+    odo = WheelOdometry(kin, units)
+    counts = [0]
+
+    def step() -> None:
+        counts[0] += 37
+        ctl.command(twist, 0.001, (0.1, -0.2))
+        odo.update([ModuleFeedback(counts[0], 1000, 300), ModuleFeedback(counts[0], -2000, 310)])
+
+    t_ikfk = time_calls(ik_fk, repeat=5000)
+    t_step = time_calls(step, repeat=5000)
+    return [BenchRow("kinematics.ik_fk_us", float(np.median(t_ikfk)) * 1e6, "us", "< 50 (1 kHz loop budget)"),
+            BenchRow("kinematics.command_us", float(np.median(t_step)) * 1e6, "us", "< 200")]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _spawn(*args: str) -> subprocess.Popen[bytes]:
+    env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "ZAGV_LOG_LEVEL": "WARNING"}
+    return subprocess.Popen([sys.executable, "-m", *args], cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+class _RpdoWatch:
+    """A CAN client on the simulated bus recording (perf_counter, traction rpm) of node 1's RPDO1 frames."""
+
+    def __init__(self, channel: str, cob_id: int = 0x201) -> None:
+        import can
+
+        self.bus = can.Bus(interface="remote", channel=channel)
+        self.cob_id = cob_id
+        self.frames: list[tuple[float, int]] = []
+        self.lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            msg = self.bus.recv(0.1)
+            if msg is not None and msg.arbitration_id == self.cob_id and len(msg.data) == 8:
+                t = time.perf_counter()
+                rpm = int.from_bytes(msg.data[:4], "little", signed=True)
+                with self.lock:
+                    self.frames.append((t, rpm))
+
+    def first_after(self, t0: float, predicate) -> float | None:  # noqa: ANN001
+        with self.lock:
+            i = bisect.bisect_left(self.frames, (t0, -(2**31)))
+            frames = self.frames[i:i + 200]
+        for t, rpm in frames:
+            if predicate(rpm):
+                return t
+        return None
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+        with contextlib.suppress(Exception):
+            self.bus.shutdown()
+
+
+def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: int = 0) -> list[BenchRow]:
+    zenoh_port, can_port, lidar_port = _free_port(), _free_port(), _free_port()
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    channel = f"ws://127.0.0.1:{can_port}/"
+    keys = Keys("r1")
+    router = open_session(router_settings([endpoint]))
+    procs = [_spawn("services.sim.canbus", "--port", str(can_port))]
+    watch = None
+    client = None
+    try:
+        time.sleep(0.5)
+        procs.append(_spawn("services.sim", "--connect", endpoint, "--set", f'sim.can_channel="{channel}"',
+                            "--set", f"sim.lidar_port={lidar_port}", "--set", 'sim.world="empty_room"',
+                            "--set", "sim.speed_factor=1.0"))
+        procs.append(_spawn("services.drive", "--connect", endpoint, "--set", f'drive.can_channel="{channel}"',
+                            "--set", "drive.rate_hz=1000.0", "--set", "robot.ax_max_mps2=1000.0",
+                            "--set", "robot.ay_max_mps2=1000.0", "--set", "robot.alpha_max_radps2=1000.0",
+                            "--set", f"drive.realtime_priority={realtime_priority}"))
+        latest: list[WheelStates] = []
+        key = keys("wheels")
+        sub = router.declare_subscriber(key, lambda s: latest.append(codec.decode_as(WheelStates,
+                                                                                     s.payload.to_bytes(), key)))
+        deadline = time.monotonic() + 60
+        while not (latest and latest[-1].link_ok):
+            if time.monotonic() > deadline:
+                raise RuntimeError("drive bench: the drive never reported a live CAN link")
+            time.sleep(0.05)
+        time.sleep(settle_s)
+        quiet = latest[-1]
+        rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", "1000 (target)"),
+                BenchRow("drive.jitter_p99_ms", quiet.loop_jitter_p99_ms, "ms", "<= 0.2")]
+
+        watch = _RpdoWatch(channel)
+        client = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        pub = client.declare_publisher(keys("cmd_vel"), express=True)
+        vy = 0.08
+        rpm = vy * 30.0 * 60.0 / (2.0 * math.pi * 0.1)  # motor units of the default robot (eq. 7)
+        for _ in range(50):  # steer the wheels to 90 deg first
+            pub.put(codec.encode(Twist2D(vy=vy)))
+            time.sleep(0.02)
+        sent = []
+        sign = 1.0
+        for _ in range(samples):
+            sign = -sign
+            payload = codec.encode(Twist2D(vy=sign * vy))
+            t0 = time.perf_counter()
+            pub.put(payload)
+            sent.append((t0, sign))
+            time.sleep(0.02)
+        pub.put(codec.encode(Twist2D()))
+        time.sleep(0.2)
+        latencies = []
+        late = 0
+        for t0, sign in sent:  # a command not on the bus before the next one counts as 20 ms (censored)
+            t = watch.first_after(t0, lambda r, s=sign: r * s > 0.5 * rpm)
+            if t is None or t - t0 >= 0.02:
+                late += 1
+                t = t0 + 0.02
+            latencies.append(t - t0)
+        sub.undeclare()
+        lat = np.asarray(latencies) * 1e3
+        rows += [BenchRow("drive.cmd_to_can_p99_ms", float(np.percentile(lat, 99)) if len(lat) else math.nan, "ms",
+                          "<= 1.0"),
+                 BenchRow("drive.cmd_to_can_p50_ms", float(np.percentile(lat, 50)) if len(lat) else math.nan, "ms",
+                          f"{late}/{samples} commands not on the bus within 20 ms")]
+        with_cmds = latest[-1]
+        rows.append(BenchRow("drive.jitter_p99_under_cmds_ms", with_cmds.loop_jitter_p99_ms, "ms",
+                             "with a cmd_vel every 20 ms"))
+        return rows
+    finally:
+        if watch is not None:
+            watch.close()
+        if client is not None:
+            client.close()
+        for p in reversed(procs):
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, 15)
+        for p in reversed(procs):
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, 9)
+                p.wait()
+        router.close()
+
+
+BENCHES = [("kinematics", bench_kinematics), ("drive", bench_drive)]
