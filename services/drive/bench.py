@@ -12,15 +12,19 @@ and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
 - ``drive.cmd_to_can_p99_ms``: ``cmd_vel`` put by a Zenoh client (through the router, as nav publishes it) until
   the RPDO1 frame carrying the new traction speed is received by a CAN client on the simulated bus. The command
   alternates between +vy and -vy (the wheels stay at 90 deg, the speed changes sign) and the acceleration limits
-  are raised for this run, so the very first RPDO after the command differs.
+  are raised for this run, so the very first RPDO after the command differs. It includes the Zenoh hop and the
+  simulated bus (a Python websocket server relaying every frame), so it is an upper bound of the drive's share;
+  ``drive.rx_to_rpdo_*`` is that share alone, measured by the drive (cmd_vel callback -> RPDO written).
 """
 
 from __future__ import annotations
 
 import bisect
 import contextlib
+import json
 import math
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -75,27 +79,40 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _spawn(*args: str) -> subprocess.Popen[bytes]:
+def realtime_allowed() -> bool:
+    """Whether this machine lets us run processes SCHED_FIFO (root or CAP_SYS_NICE, and ``chrt`` present)."""
+    if shutil.which("chrt") is None:
+        return False
+    return subprocess.run(["chrt", "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+def _spawn(*args: str, fifo: int = 0) -> subprocess.Popen[bytes]:
     env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "ZAGV_LOG_LEVEL": "WARNING"}
-    return subprocess.Popen([sys.executable, "-m", *args], cwd=REPO_ROOT, env=env, stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    prefix = ["chrt", "-f", str(fifo)] if fifo > 0 else []
+    return subprocess.Popen([*prefix, sys.executable, "-m", *args], cwd=REPO_ROOT, env=env,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
 
 
 class _RpdoWatch:
     """A CAN client on the simulated bus recording (perf_counter, traction rpm) of node 1's RPDO1 frames."""
 
-    def __init__(self, channel: str, cob_id: int = 0x201) -> None:
+    def __init__(self, channel: str, cob_id: int = 0x201, fifo: int = 0) -> None:
         import can
 
         self.bus = can.Bus(interface="remote", channel=channel)
         self.cob_id = cob_id
         self.frames: list[tuple[float, int]] = []
         self.lock = threading.Lock()
+        self.fifo = fifo
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
+        if self.fifo:
+            with contextlib.suppress(OSError):
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo))
         while not self._stop.is_set():
             msg = self.bus.recv(0.1)
             if msg is not None and msg.arbitration_id == self.cob_id and len(msg.data) == 8:
@@ -120,13 +137,28 @@ class _RpdoWatch:
             self.bus.shutdown()
 
 
-def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: int = 0) -> list[BenchRow]:
+def _stats(session, keys: Keys) -> dict:  # noqa: ANN001 - zenoh.Session
+    for reply in session.get(keys("@stats/drive"), timeout=2.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return {}
+
+
+def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None = None,
+                rpdo_refresh_s: float = 0.0) -> list[BenchRow]:
+    """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
+    drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning) and the CAN bus server and the
+    observing CAN client at SCHED_FIFO 10, as stand-ins for CAN hardware; otherwise everything is time-shared.
+    """
+    if realtime is None:
+        realtime = realtime_allowed()
+    fifo = 10 if realtime else 0
     zenoh_port, can_port, lidar_port = _free_port(), _free_port(), _free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     channel = f"ws://127.0.0.1:{can_port}/"
     keys = Keys("r1")
     router = open_session(router_settings([endpoint]))
-    procs = [_spawn("services.sim.canbus", "--port", str(can_port))]
+    procs = [_spawn("services.sim.canbus", "--port", str(can_port), fifo=fifo)]
     watch = None
     client = None
     try:
@@ -137,7 +169,9 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: in
         procs.append(_spawn("services.drive", "--connect", endpoint, "--set", f'drive.can_channel="{channel}"',
                             "--set", "drive.rate_hz=1000.0", "--set", "robot.ax_max_mps2=1000.0",
                             "--set", "robot.ay_max_mps2=1000.0", "--set", "robot.alpha_max_radps2=1000.0",
-                            "--set", f"drive.realtime_priority={realtime_priority}"))
+                            "--set", f"drive.realtime_priority={50 if realtime else 0}",
+                            "--set", f"drive.rpdo_refresh_s={rpdo_refresh_s}",
+                            "--set", f"drive.spin_s={0.0 if realtime else 0.0003}", fifo=fifo))
         latest: list[WheelStates] = []
         key = keys("wheels")
         sub = router.declare_subscriber(key, lambda s: latest.append(codec.decode_as(WheelStates,
@@ -149,10 +183,11 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: in
             time.sleep(0.05)
         time.sleep(settle_s)
         quiet = latest[-1]
-        rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", "1000 (target)"),
+        mode = "SCHED_FIFO" if realtime else "time-shared"
+        rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", f"1000 (target; {mode})"),
                 BenchRow("drive.jitter_p99_ms", quiet.loop_jitter_p99_ms, "ms", "<= 0.2")]
 
-        watch = _RpdoWatch(channel)
+        watch = _RpdoWatch(channel, fifo=fifo)
         client = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         pub = client.declare_publisher(keys("cmd_vel"), express=True)
         vy = 0.08
@@ -168,6 +203,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: in
             t0 = time.perf_counter()
             pub.put(payload)
             sent.append((t0, sign))
+            watch.sent = sent
             time.sleep(0.02)
         pub.put(codec.encode(Twist2D()))
         time.sleep(0.2)
@@ -188,6 +224,10 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime_priority: in
         with_cmds = latest[-1]
         rows.append(BenchRow("drive.jitter_p99_under_cmds_ms", with_cmds.loop_jitter_p99_ms, "ms",
                              "with a cmd_vel every 20 ms"))
+        stats = _stats(router, keys)
+        rows += [BenchRow("drive.rx_to_rpdo_p50_ms", stats.get("cmd_to_bus_p50_ms", math.nan), "ms",
+                          "inside drive: cmd_vel callback -> RPDO written"),
+                 BenchRow("drive.rx_to_rpdo_p99_ms", stats.get("cmd_to_bus_p99_ms", math.nan), "ms", "")]
         return rows
     finally:
         if watch is not None:

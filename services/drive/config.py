@@ -37,6 +37,7 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     spin_s: float = 0.0003
     wake_on_command: bool = True
     realtime_priority: int = 0
+    rpdo_refresh_s: float = 0.0
     cmd_timeout_s: float = 0.2
     publish_hz: float = 50.0
     auto_enable: bool = True

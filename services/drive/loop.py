@@ -178,6 +178,7 @@ class LoopSettings:
     imu_timeout_s: float = 0.2
     wake_on_command: bool = True
     realtime_priority: int = 0
+    rpdo_refresh_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -225,6 +226,10 @@ class DriveLoop:
         self._cmd: Twist | None = None
         self._cmd_at = -math.inf
         self._cmd_lock = threading.Lock()
+        self._cmd_rx_perf = 0.0
+        self._cmd_rx_done = 0.0
+        #: wall seconds from a cmd_vel's arrival to the write of the RPDO frames that carry it (last 1000)
+        self.cmd_latency: collections.deque[float] = collections.deque(maxlen=1000)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._reconnector: threading.Thread | None = None
@@ -234,7 +239,8 @@ class DriveLoop:
         self._next_publish = -math.inf
         self._imu_rate: tuple[float, float] | None = None  # (yaw rate rad/s, monotonic time)
         self.last_snapshot: Snapshot | None = None
-        self.on_command_sent: Callable[[], None] | None = None
+        self._last_sent: tuple | None = None
+        self._last_sent_at = -math.inf
 
     # ------------------------------------------------------------------ inputs (any thread)
 
@@ -246,9 +252,16 @@ class DriveLoop:
         with self._cmd_lock:
             self._cmd = Twist(vx, vy, wz)
             self._cmd_at = self.ticker.now()
+            self._cmd_rx_perf = time.perf_counter()
         if self.settings.wake_on_command:
             self.ticker.poke()
         return True
+
+    def cmd_latency_ms(self, percentile: float) -> float:
+        """A percentile of ``cmd_latency`` in ms (0 before any command)."""
+        if not self.cmd_latency:
+            return 0.0
+        return float(np.percentile(np.fromiter(self.cmd_latency, float), percentile)) * 1e3
 
     def set_imu_yaw_rate(self, wz_radps: float) -> None:
         if math.isfinite(wz_radps):
@@ -327,20 +340,22 @@ class DriveLoop:
         self.flag_fault = self._check_flags(feedback)
 
         with self._cmd_lock:
-            cmd, cmd_at = self._cmd, self._cmd_at
+            cmd, cmd_at, cmd_rx = self._cmd, self._cmd_at, self._cmd_rx_perf
         if link is None or not self.enabled or self.estopped or self.flag_fault:
             result = self.controller.stop()
         else:
             fresh = cmd is not None and now - cmd_at <= s.cmd_timeout_s
             result = self.controller.command(cmd if fresh else ZERO_TWIST, dt, angles or None)
-        if link is not None:
+        if link is not None and (result.motors != self._last_sent or now - self._last_sent_at >= s.rpdo_refresh_s):
             try:
                 link.send(result.motors)
-                if self.on_command_sent is not None:
-                    self.on_command_sent()
+                self._last_sent, self._last_sent_at = result.motors, now
             except LinkError as exc:
                 self._link_lost(str(exc))
                 link = None
+        if link is not None and cmd_rx != self._cmd_rx_done:  # a new command is on the bus: time its way through
+            self._cmd_rx_done = cmd_rx
+            self.cmd_latency.append(time.perf_counter() - cmd_rx)
 
         if link is not None and feedback:
             dyaw = None
@@ -391,6 +406,7 @@ class DriveLoop:
     def _link_lost(self, reason: str) -> None:
         if not self.link_ok:
             return
+        self._last_sent = None
         log.warning("CAN link lost: %s; stopping and reconnecting", reason)
         self.link_ok = False
         self.controller.stop()

@@ -45,7 +45,8 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> D
                             reconnect_initial_s=cfg.reconnect_initial_s, reconnect_max_s=cfg.reconnect_max_s,
                             fault_mask=cfg.fault_mask, imu_yaw_fusion=cfg.imu_yaw_fusion,
                             imu_yaw_weight=cfg.imu_yaw_weight, imu_timeout_s=cfg.imu_timeout_s,
-                            wake_on_command=cfg.wake_on_command, realtime_priority=cfg.realtime_priority)
+                            wake_on_command=cfg.wake_on_command, realtime_priority=cfg.realtime_priority,
+                            rpdo_refresh_s=cfg.rpdo_refresh_s)
     link_settings = cfg.link_settings()
     return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings, ticker.now), ticker, settings,
                      enabled=cfg.auto_enable)
@@ -97,7 +98,9 @@ async def run(ctx: ServiceContext) -> None:
                                 estopped=snap.estopped, loop_hz=round(snap.loop_hz, 2),
                                 loop_jitter_p99_ms=round(snap.jitter_p99_ms, 4), loop_overruns=snap.overruns,
                                 reconnects=loop.reconnects, cmd_rejected=loop.cmd_rejected,
-                                refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4))
+                                refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4),
+                                cmd_to_bus_p50_ms=round(loop.cmd_latency_ms(50), 4),
+                                cmd_to_bus_p99_ms=round(loop.cmd_latency_ms(99), 4))
 
     loop.publish = publish
     rejected_logged = [0.0]
