@@ -488,7 +488,7 @@ class RoboteqNode:
         self.state = NMT_OPERATIONAL if self.s.autostart else NMT_PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.heartbeat_ms / 1000.0
         for p in self.tpdos:
-            p.next_due_s = now_s
+            p.next_due_s = 0.0
         return [(0x700 + self.n, b"\x00")]
 
     def on_frame(self, can_id: int, data: bytes, now_s: float) -> list[tuple[int, bytes]]:
@@ -515,7 +515,7 @@ class RoboteqNode:
         if cs == 0x01:
             self.state = NMT_OPERATIONAL
             for p in self.tpdos:
-                p.next_due_s = now_s
+                p.next_due_s = 0.0
         elif cs == 0x02:
             self.state = NMT_STOPPED
         elif cs == 0x80:
@@ -623,7 +623,11 @@ class RoboteqNode:
                         and not p.cob_id & 0x80000000 and p.mapping:
                     out.append((p.cob_id & 0x7FF, self._tpdo_payload(p)))
                     self.tpdo_count += 1
-                    p.next_due_s = max(p.next_due_s + p.event_timer_ms / 1000.0, now_s)
+                    period = p.event_timer_ms / 1000.0
+                    late = now_s - p.next_due_s
+                    # keep the cadence; (re)anchor at this send when starting or when far behind
+                    p.next_due_s = p.next_due_s + period if 0.0 <= late < period and p.next_due_s > 0.0 \
+                        else now_s + period
         return out
 
 
