@@ -105,6 +105,8 @@ class Simulation:
         """Move the robot; False (and not moved) for non-finite values. Clears the collision latch."""
         if not all(math.isfinite(v) for v in (x, y, theta)):
             return False
+        turn = theta - self.robot.theta
         self.robot.teleport(x, y, theta)
+        self.imu.yaw_rad = (self.imu.yaw_rad + turn + math.pi) % (2 * math.pi) - math.pi  # carried: the gyro feels it
         self.robot.collided = self.world.circle_collides(x, y, self.footprint_radius_m)
         return True
