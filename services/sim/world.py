@@ -210,6 +210,8 @@ class World:
         d[d == 0.0] = 1e-12  # an axis-parallel beam: its exit distance along that axis becomes huge
         inv_d = 1.0 / d
         side = (d > 0.0).astype(np.float64)  # the cell face a beam exits through: floor + 1 when moving up
+        # a beam moving down an axis that sits exactly on a cell face is in the cell below that face
+        nudge = np.where(d < 0.0, -1e-9, 0.0)
         origin = np.array([[gx], [gy]])
         weights = np.array([1.0, float(self._cols_p)])
         solid = self._solid_flat
@@ -221,7 +223,7 @@ class World:
         for it in range(1, max_iterations + 1):
             p = d * t
             p += origin
-            cell = np.floor(p)
+            cell = np.floor(p + nudge)
             flat = (weights @ cell).astype(np.intp)
             hit = solid.take(flat)
             exit_ = cell + side
@@ -238,8 +240,8 @@ class World:
                     break
                 if live.sum() < 0.7 * live.size:
                     out[idx] = t
-                    idx, t, d, inv_d, side, alive = idx[live], t[live], d[:, live], inv_d[:, live], side[:, live], \
-                        alive[live]
+                    idx, t, alive = idx[live], t[live], alive[live]
+                    d, inv_d, side, nudge = d[:, live], inv_d[:, live], side[:, live], nudge[:, live]
         out[idx] = t
         return out
 
