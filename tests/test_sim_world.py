@@ -60,6 +60,9 @@ def test_axis_aligned_ranges_are_exact(corridor: World) -> None:
     assert r[1] == pytest.approx(4.9, abs=1e-5)  # south: across the lobby to its wall at y = -1.4
     assert r[2] == pytest.approx(5.0, abs=1e-5)  # west wall at x = -2
     assert r[3] == 20.0  # down the corridor: nothing within 20 m
+    # from exactly on a cell face, straight down (cos(3 pi/2) is -1.8e-16, not 0): must not stall on the face
+    r = corridor.raycast(15.0, 3.0, np.array([1.5 * math.pi, math.pi]), 20.0, max_iterations=200)
+    assert r == pytest.approx([1.4, 17.0], abs=1e-5)
 
 
 def test_raycast_matches_brute_force(corridor: World) -> None:
