@@ -301,3 +301,20 @@ def test_python_canopen_master_reads_writes_and_maps_pdos(request) -> None:  # n
         sim.steer.position_counts = 4321
         node.tpdo[1].wait_for_reception(timeout=2)
         assert node.tpdo[1]["obj 2104.ch2"].raw == 4321
+
+
+def test_rpdo_remapped_to_rpm_speed_and_counters_wrap() -> None:
+    node = make()
+    node.boot(0.0)
+    sdo_write(node, 0x1400, 1, 0x80000200 + N)
+    sdo_write(node, 0x1600, 0, 0, size=1)
+    sdo_write(node, 0x1600, 1, 0x20020120)  # !S ch1, rpm
+    sdo_write(node, 0x1600, 2, 0x20010220)  # !P ch2, counts
+    sdo_write(node, 0x1600, 0, 2, size=1)
+    sdo_write(node, 0x1400, 1, 0x200 + N)
+    node.on_frame(0x000, bytes([0x01, N]), 0.0)
+    node.on_frame(0x200 + N, (-1234).to_bytes(4, "little", signed=True) + (777).to_bytes(4, "little"), 0.0)
+    assert node.traction.target_rpm == -1234.0 and node.steer.target_counts == 777.0
+    node.traction.position_counts = 2**31 + 5.0
+    assert node.counter(1) == -(2**31) + 5
+    assert int.from_bytes(sdo_read(node, 0x2104, 1)[4:8], "little", signed=True) == -(2**31) + 5
