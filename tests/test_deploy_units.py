@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
+import socket
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,6 +16,8 @@ import pytest
 from services.cli import install_units
 from services.cli.install_units import SERVICES, InstallError, UnitOptions, check_options, render_units
 from services.cli.main import main
+from tests.support.stack import free_port
+from tests.support.waiting import wait_for_sync
 
 HARDENING = {
     "NoNewPrivileges": "yes",
@@ -218,3 +223,47 @@ def test_systemd_analyze_verify_accepts_the_rendered_units(venv: Path, fake_zeno
     # systemd only warns about unknown keys or unparsable values: any line about our units is a failure
     complaints = [line for line in output.splitlines() if "zagv" in line]
     assert not complaints, "\n".join(complaints)
+
+
+@pytest.mark.parametrize("name", SERVICES)
+def test_each_service_accepts_its_units_command_line(venv: Path, tmp_path: Path, name: str) -> None:
+    """The unit's ExecStart (with the example robot file) passes the service's own --check-config."""
+    repo = Path(__file__).resolve().parents[1]
+    if not (repo / "services" / name / "__main__.py").is_file():
+        pytest.skip(f"services.{name} has not landed yet: its unit's command line cannot be checked")
+    unit = rendered(options(venv))[f"zagv-{name}.service"]
+    argv = one(unit, "Service", "ExecStart").replace("${STATE_DIRECTORY}", str(tmp_path)).split()
+    argv[argv.index("--config") + 1] = str(repo / "deploy" / "robot.example.toml")
+    result = subprocess.run([*argv, "--check-config"], capture_output=True, text=True, timeout=120, cwd=repo,
+                            env={**os.environ, "PYTHONPATH": str(repo)})
+    assert result.returncode == 0, result.stdout + result.stderr
+
+
+@pytest.mark.integration
+def test_router_notifies_ready_and_keeps_the_watchdog_fed(tmp_path: Path) -> None:
+    """What Type=notify + WatchdogSec in zagv-router.service rely on: READY=1, then WATCHDOG=1 every period/2."""
+    repo = Path(__file__).resolve().parents[1]
+    sock_dir = Path(tempfile.mkdtemp(prefix="zagv-notify-"))  # AF_UNIX paths are limited to 108 bytes
+    notify_path = sock_dir / "notify"
+    received: list[str] = []
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(str(notify_path))
+        sock.settimeout(0.05)
+        env = {**os.environ, "PYTHONPATH": str(repo), "NOTIFY_SOCKET": str(notify_path), "WATCHDOG_USEC": "400000"}
+        env.pop("WATCHDOG_PID", None)
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen",
+                                 f"tcp/127.0.0.1:{free_port()}"], cwd=repo, env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, stdin=subprocess.DEVNULL)
+
+        def got_ready_then_watchdog() -> bool:
+            with contextlib.suppress(TimeoutError):
+                received.append(sock.recv(256).decode())
+            return "READY=1" in received and "WATCHDOG=1" in received[received.index("READY=1"):]
+
+        try:
+            wait_for_sync(got_ready_then_watchdog, timeout_s=30, poll_s=0.0,
+                          message=f"router notifications: {received}")
+        finally:
+            proc.terminate()
+            proc.wait(timeout=15)
+    shutil.rmtree(sock_dir, ignore_errors=True)
