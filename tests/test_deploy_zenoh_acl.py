@@ -184,3 +184,21 @@ def test_hmi_jog_arrives_and_another_hosts_cmd_vel_never_does(acl_router) -> Non
     finally:
         for session in sessions:
             session.close()
+
+
+def test_a_certificate_from_another_ca_cannot_open_a_session(acl_router, tmp_path: Path) -> None:
+    """Mutual TLS: the CN alone proves nothing; a zagv-hmi certificate signed by a foreign CA is turned away."""
+    cert_dir, _tcp_port, tls_port, router = acl_router
+    rogue_dir = tmp_path / "rogue"
+    for args in (["ca"], ["zagv-hmi"]):
+        subprocess.run(["sh", str(MAKE_CERTS), str(rogue_dir), *args], check=True, capture_output=True, timeout=60)
+    conf = zenoh.Config.from_file(str(ZENOH_DIR / "client-hmi-tls.json5"))
+    conf.insert_json5("connect/endpoints", json.dumps([f"tls/localhost:{tls_port}"]))
+    conf.insert_json5("connect/timeout_ms", "3000")
+    conf.insert_json5("connect/exit_on_failure", "true")
+    conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(str(cert_dir / "ca.pem")))
+    conf.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(rogue_dir / "zagv-hmi.pem")))
+    conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(rogue_dir / "zagv-hmi.key")))
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(conf).close()
+    assert router.proc.poll() is None, f"router died:\n{router.output()}"
