@@ -1,4 +1,4 @@
-"""The LAN router config (mutual TLS + access control) on loopback: the HMI's jog arrives, another host's never does.
+"""The LAN router config (mutual TLS + access control) on loopback: the HMI's jog and goal pass, no other host's.
 
 Certificates come from ``deploy/zenoh/make-certs.sh`` (openssl) at test time. The router is a real ``zagv router``
 process running ``deploy/zenoh/router-lan-tls.json5`` with only its endpoints (free loopback ports) and certificate
@@ -141,6 +141,13 @@ def test_hmi_jog_arrives_and_another_hosts_cmd_vel_never_does(acl_router) -> Non
         sessions.append(robot)
         robot.declare_subscriber("agv/r1/**", on_sample)
         robot.declare_subscriber(SENTINEL_KEY, on_sample)
+
+        def on_goal(query: zenoh.Query) -> None:  # stands for nav: records the goal and accepts it
+            with lock:
+                received.append((str(query.key_expr), query.payload.to_bytes() if query.payload else b""))
+            query.reply(query.key_expr, b"accepted")
+
+        robot.declare_queryable("agv/r1/nav/goal", on_goal)
         hmi = tls_client(cert_dir, "zagv-hmi", tls_port)
         sessions.append(hmi)
         other = tls_client(cert_dir, "zagv-fleet", tls_port)  # same CA, another CN: a host that is not the HMI
@@ -155,6 +162,14 @@ def test_hmi_jog_arrives_and_another_hosts_cmd_vel_never_does(acl_router) -> Non
         wait_for_sync(hmi_jog_arrived, timeout_s=20, poll_s=0.1,
                       message=f"the HMI's cmd_vel never arrived; router output:\n{router.output()}")
 
+        # and so is its goal, which gets its reply
+        def hmi_goal_answered() -> bool:
+            replies = list(hmi.get("agv/r1/nav/goal", payload=b"hmi-goal", timeout=2.0))
+            return any(r.ok is not None and r.ok.payload.to_bytes() == b"accepted" for r in replies)
+
+        wait_for_sync(hmi_goal_answered, timeout_s=20, poll_s=0.1, message="the HMI's goal got no reply")
+        assert seen("agv/r1/nav/goal", b"hmi-goal")
+
         # the other host's link is up and routed: its sentinel arrives
         def other_link_ready() -> bool:
             other.put(SENTINEL_KEY, b"before")
@@ -163,14 +178,16 @@ def test_hmi_jog_arrives_and_another_hosts_cmd_vel_never_does(acl_router) -> Non
         wait_for_sync(other_link_ready, timeout_s=20, poll_s=0.1,
                       message=f"the other host's sentinel never arrived; router output:\n{router.output()}")
 
-        # denied puts, then a sentinel on the same session and priority: once it is in, the puts are dropped for good
+        # denied puts and query, then a sentinel on the same session and priority: once it is in, they were dropped
         other.put("agv/r1/cmd_vel", b"other-jog")
         other.put("agv/r1/hmi/poses/dock", b"other-pose")
+        other.get("agv/r1/nav/goal", payload=b"other-goal", timeout=2.0)  # replies, if any, are not awaited
         other.put(SENTINEL_KEY, b"after")
         wait_for_sync(lambda: seen(SENTINEL_KEY, b"after"), timeout_s=20,
                       message="the sentinel published after the denied puts never arrived")
         assert not seen("agv/r1/cmd_vel", b"other-jog"), "cmd_vel from a host that is not the HMI got through"
         assert not seen("agv/r1/hmi/poses/dock", b"other-pose"), "another host edited the pose database"
+        assert not seen("agv/r1/nav/goal", b"other-goal"), "another host sent a goal"
 
         # both remote hosts may still observe the robot
         observed: list[str] = []
