@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import socket
 import subprocess
@@ -267,3 +268,20 @@ def test_router_notifies_ready_and_keeps_the_watchdog_fed(tmp_path: Path) -> Non
             proc.terminate()
             proc.wait(timeout=15)
     shutil.rmtree(sock_dir, ignore_errors=True)
+
+
+def test_systemd_rates_every_service_unit_well_hardened(venv: Path, tmp_path: Path) -> None:
+    """``systemd-analyze security --offline`` exposure (0 = locked down, 10 = unprotected) stays at 'OK' (< 3)."""
+    exe = shutil.which("systemd-analyze")
+    if not exe:
+        pytest.skip("systemd-analyze not installed: exposure not rated")
+    dest = tmp_path / "units"
+    install_units.write_units(render_units(options(venv)), dest)
+    for path in sorted(dest.glob("*.service")):
+        result = subprocess.run([exe, "security", "--offline=true", "--no-pager", str(path)],
+                                capture_output=True, text=True, timeout=60)
+        if "--offline" in result.stderr and result.returncode != 0:
+            pytest.skip(f"this systemd-analyze has no offline security rating: {result.stderr.strip()}")
+        match = re.search(r"Overall exposure level for \S+: (\d+(?:\.\d+)?)", result.stdout)
+        assert match, result.stdout[-500:] + result.stderr
+        assert float(match.group(1)) < 3.0, f"{path.name}: exposure {match.group(1)}"
