@@ -46,6 +46,8 @@ __all__ = ["SimConfig", "run"]
 
 log = logging.getLogger("zagv.sim")
 
+MIN_SLEEP_WALL_S = 0.002
+
 
 class CanLink:
     """The controllers' connection to the CAN bus; reconnects when the bus goes away."""
@@ -239,10 +241,13 @@ async def run(ctx: ServiceContext) -> None:
         node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
     else:
         try:
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock)
+            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
+                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
+                                   range_noise_m=cfg.laser_noise_m, max_range_m=cfg.laser_max_range_m,
+                                   seed=cfg.seed + 4)
             await lidar.start()
-        except OSError as exc:
-            node.log.error("LMS111 emulator cannot listen on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
+        except (OSError, ValueError, TypeError) as exc:
+            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
             lidar = None
 
     clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
@@ -271,7 +276,8 @@ async def run(ctx: ServiceContext) -> None:
                 due = wall0 + (sim.now_s + sim.dt - sim0) / cfg.speed_factor
                 delay = due - now_wall
                 if delay > 0.0:
-                    await asyncio.sleep(delay)
+                    # wake at most every 2 ms of wall time and catch up in a burst: fewer wake-ups at high factors
+                    await asyncio.sleep(max(delay, MIN_SLEEP_WALL_S))
                 elif delay < -0.25:  # cannot keep up: re-anchor rather than burst
                     stats["behind"] += 1
                     wall0, sim0 = now_wall, sim.now_s
