@@ -212,3 +212,50 @@ def test_motor_unit_round_trips(v: float, theta: float) -> None:
     assert u.rpm_to_mps(u.mps_to_rpm(v)) == pytest.approx(v)
     assert u.counts_to_rad(u.rad_to_counts(theta)) == pytest.approx(theta)
     assert abs(u.counts_to_rad(u.steer_command(theta)) - theta) <= math.pi / u.steer_counts_per_rev + 1e-12
+
+
+# --------------------------------------------------------------------------- wheel odometry and the controller
+
+
+def _controller_parts():
+    from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
+
+    units = [MotorUnits(), MotorUnits()]
+    return DriveController(KIN, units, TwistLimits.from_robot(ROBOT)), WheelOdometry(KIN, units), ModuleFeedback
+
+
+def test_wheel_odometry_integrates_counts_across_wrap_and_rejects_jumps() -> None:
+    _, odo, fb = _controller_parts()
+    per_m = 1.0 / MotorUnits().m_per_count
+    start = 2**31 - 1000
+    odo.update([fb(start), fb(start)])
+    wrapped = start + int(0.6 * per_m) - 2**32  # the S32 counter wrapped during a 0.6 m step
+    odo.update([fb(wrapped), fb(wrapped)])
+    assert odo.rejected_steps == 1 and odo.pose.x == 0.0  # 0.6 m in one step (> max_step_m) is a glitch
+    c = wrapped + int(0.1 * per_m)
+    odo.update([fb(c), fb(c)])
+    assert odo.pose.x == pytest.approx(0.1, abs=1e-4) and odo.distance_m == pytest.approx(0.1, abs=1e-4)
+
+
+def test_wheel_odometry_blends_the_imu_yaw_increment() -> None:
+    _, odo, fb = _controller_parts()
+    odo.update([fb(0), fb(0)])
+    odo.update([fb(0), fb(0)], imu_dyaw_rad=0.1, imu_weight=0.5)  # wheels say no turn, the gyro says 0.1 rad
+    assert odo.pose.theta == pytest.approx(0.05)
+    odo.update([fb(0), fb(0)], imu_dyaw_rad=math.nan, imu_weight=1.0)  # a bad gyro value is ignored
+    assert odo.pose.theta == pytest.approx(0.05)
+
+
+def test_controller_ramps_holds_angles_and_refuses_non_finite() -> None:
+    ctl, _, _ = _controller_parts()
+    out = ctl.command(Twist(0.2, 0.0, 0.0), 0.1)
+    assert out.twist.vx == pytest.approx(0.05)  # 0.5 m/s^2 for 0.1 s
+    ctl.command(Twist(0.0, 0.2, 0.0), 1.0)
+    ctl.command(Twist(0.0, 0.2, 0.0), 1.0)
+    held = [m.angle_rad for m in ctl.setpoints]
+    out = ctl.command(Twist(), 1.0)  # at rest: the wheels keep their angle, no snap back to 0
+    assert [m.angle_rad for m in out.modules] == held and all(m.speed_mps == 0.0 for m in out.modules)
+    # units whose rpm factor underflows to 0: the conversion fails inside the chain; the robot is stopped instead
+    ctl.units = (MotorUnits(wheel_radius_m=5e-324, gear_ratio=1e10),) * 2
+    out = ctl.command(Twist(0.1, 0.0, 0.0), 1.0)
+    assert out.refused and all(m.traction_rpm == 0 for m in out.motors) and ctl.refusals == 1

@@ -130,7 +130,7 @@ class DriveController:
         try:
             motors = tuple(MotorCommand(u.speed_command(o.speed_mps), u.steer_command(o.angle_rad))
                            for u, o in zip(self.units, outputs))
-        except ValueError:
+        except (ValueError, ArithmeticError):  # non-finite or unrepresentable: never sent to a motor
             return self._refuse()
         self.commanded = commanded
         self.setpoints = tuple(setpoints)

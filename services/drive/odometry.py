@@ -30,8 +30,9 @@ class Pose:
             s = 1.0 - dtheta * dtheta / 6.0
             c = 0.5 * dtheta
         else:
+            half = 0.5 * dtheta
             s = math.sin(dtheta) / dtheta
-            c = (1.0 - math.cos(dtheta)) / dtheta
+            c = math.sin(half) * math.sin(half) * 2.0 / dtheta  # (1 - cos d)/d without cancellation
         bx = dx * s - dy * c
         by = dx * c + dy * s
         ct, st = math.cos(self.theta), math.sin(self.theta)

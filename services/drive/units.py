@@ -62,8 +62,8 @@ class MotorUnits:
         """Traction command in integer rpm, clamped to +-max_rpm; raises ValueError for a non-finite speed."""
         if not math.isfinite(mps):
             raise ValueError(f"non-finite wheel speed {mps!r} refused")
-        rpm = self.mps_to_rpm(mps)
-        return int(round(min(max(rpm, -self.max_rpm), self.max_rpm)))
+        limit = min(self.max_rpm, S32_MAX)
+        return int(round(min(max(self.mps_to_rpm(mps), -limit), limit)))
 
     # ------------------------------------------------------------------ steering (eq. 8)
 
