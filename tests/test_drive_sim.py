@@ -15,7 +15,17 @@ import time
 import pytest
 
 from proto import codec
-from proto.messages import Clock, GroundTruth, Odometry, Pose2D, TeleportRequest, Twist2D, WheelStates
+from proto.messages import (
+    Clock,
+    Empty,
+    GroundTruth,
+    Odometry,
+    Pose2D,
+    Reply,
+    TeleportRequest,
+    Twist2D,
+    WheelStates,
+)
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
@@ -135,6 +145,11 @@ class Driver:
     def speed(self) -> float:
         t = self.truth.twist
         return math.hypot(t.vx, t.vy)
+
+    def query(self, name: str) -> Reply:
+        replies = list(self.session.get(self.keys(name), payload=codec.encode(Empty()), timeout=5.0))
+        assert replies and replies[0].ok is not None, f"{name} did not answer"
+        return codec.decode_as(Reply, replies[0].ok.payload.to_bytes())
 
     def teleport(self, x: float, y: float, theta: float) -> None:
         key = self.keys("sim/teleport")
@@ -275,3 +290,32 @@ def test_can_bus_restart_fault_stop_reconnect_resume(stack_factory) -> None:
     # odometry continued from where it was (no reset to the origin, no jump)
     assert odom_after[0] > odom_before[0]
     assert math.hypot(odom_after[0] - odom_before[0], odom_after[1] - odom_before[1]) < 3.0
+
+
+def test_estop_release_disable_enable_queries(stack_factory) -> None:
+    stack = stack_factory(services=["sim", "drive"], world="empty_room", speed=2.0).start()
+    d = Driver(stack)
+    d.teleport(-4.0, 0.0, 0.0)
+
+    def keep_driving_until(cond, timeout_s: float = 20.0) -> None:  # noqa: ANN001
+        deadline = time.monotonic() + timeout_s
+        while not cond():
+            assert time.monotonic() < deadline, "condition not met while driving"
+            d.send(0.1, 0.0, 0.0)
+            time.sleep(0.01)
+
+    keep_driving_until(lambda: d.speed() > 0.09)
+    reply = d.query("drive/estop")
+    assert reply.ok and "!EX" in reply.message
+    # the controllers latch their emergency stop (FF bit 4) and the wheels stop although cmd_vel keeps coming
+    keep_driving_until(lambda: d.wheels.estopped and all(m.fault_flags & 0x10 for m in d.wheels.modules)
+                       and d.speed() < 0.005)
+    assert d.wheels.fault == ""  # our own e-stop is a state, not a fault
+    refused = d.query("drive/enable")
+    assert not refused.ok and "release" in refused.message
+    assert d.query("drive/release").ok
+    keep_driving_until(lambda: not d.wheels.estopped and d.speed() > 0.09)
+    assert d.query("drive/disable").ok
+    keep_driving_until(lambda: not d.wheels.enabled and d.speed() < 0.005)
+    assert d.query("drive/enable").ok
+    keep_driving_until(lambda: d.wheels.enabled and d.speed() > 0.09)

@@ -397,11 +397,3 @@ class RoboteqLink:
     def release(self) -> list[str]:
         """``!MG``: release the emergency shutdown on every controller."""
         return self.write_all(RELEASE_INDEX, 0, b"\x01")
-
-
-def make_bus(interface: str, channel: str, bitrate: int = 0) -> can.BusABC:
-    """A python-can bus as the link opens it (for tools and benches that watch the same bus)."""
-    kwargs = {"interface": interface, "channel": channel}
-    if bitrate:
-        kwargs["bitrate"] = bitrate
-    return can.Bus(**kwargs)
