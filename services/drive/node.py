@@ -99,6 +99,8 @@ async def run(ctx: ServiceContext) -> None:
                                 loop_jitter_p99_ms=round(snap.jitter_p99_ms, 4), loop_overruns=snap.overruns,
                                 reconnects=loop.reconnects, cmd_rejected=loop.cmd_rejected,
                                 refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4),
+                                can_frames_sent=link.frames_sent if (link := loop.link) else 0,
+                                can_error_frames=link.error_frames if link else 0,
                                 cmd_to_bus_p50_ms=round(loop.cmd_latency_ms(50), 4),
                                 cmd_to_bus_p99_ms=round(loop.cmd_latency_ms(99), 4))
 
