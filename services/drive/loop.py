@@ -223,6 +223,7 @@ class DriveLoop:
         self.flag_fault = ""
         self.cmd_rejected = 0
         self.reconnects = 0
+        self.cycle_errors = 0
         self._cmd: Twist | None = None
         self._cmd_at = -math.inf
         self._cmd_lock = threading.Lock()
@@ -302,8 +303,10 @@ class DriveLoop:
                 break
             try:
                 self.cycle(now, periodic)
-            except Exception:  # a bug must not leave the motors running: the next cycle commands again
-                log.exception("control cycle failed")
+            except Exception:  # no frame this cycle: the controllers' watchdog stops the motors if it persists
+                self.cycle_errors += 1
+                if self.cycle_errors in (1, 10, 100) or self.cycle_errors % 1000 == 0:
+                    log.exception("control cycle failed (%d so far)", self.cycle_errors)
 
     # ------------------------------------------------------------------ one cycle
 
