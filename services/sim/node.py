@@ -26,6 +26,7 @@ import os
 import select
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -62,6 +63,7 @@ class CanLink:
         self.rx = 0
         self.tx = 0
         self.errors = 0
+        self._fast_send: Callable[[list[tuple[int, bytes]]], None] | None = None
 
     def connect(self) -> bool:
         try:
@@ -70,6 +72,7 @@ class CanLink:
             log.debug("CAN bus %s %s not available: %s", self.interface, self.channel, exc)
             self.bus = None
             return False
+        self._fast_send = _remote_fast_sender(self.bus)
         fd = -1
         with contextlib.suppress(Exception):
             fd = self.bus.fileno()
@@ -112,9 +115,12 @@ class CanLink:
         if not frames or self.bus is None:
             return
         try:
-            for can_id, data in frames:
-                self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
-                self.tx += 1
+            if self._fast_send is not None:
+                self._fast_send(frames)
+            else:
+                for can_id, data in frames:
+                    self.bus.send(can.Message(arbitration_id=can_id, data=data, is_extended_id=False))
+            self.tx += len(frames)
         except Exception as exc:
             self._lost(exc)
 
@@ -132,6 +138,39 @@ class CanLink:
             with contextlib.suppress(Exception):
                 self.bus.shutdown()
             self.bus = None
+
+
+def _remote_fast_sender(bus: can.BusABC) -> Callable[[list[tuple[int, bytes]]], None] | None:
+    """For python-can-remote's binary protocol: write all frames in one ``sendall``.
+
+    The library masks every outgoing WebSocket frame byte by byte in Python (about half of the sim's CAN cost);
+    here the frames are built directly, with an all-zero mask (valid WebSocket framing; the bus is loopback only).
+    Returns None when the bus is not a python-can-remote client speaking the binary protocol (then ``bus.send``).
+    """
+    try:
+        from can_remote.protocol import BINARY_MESSAGE_TYPE, BINARY_MSG_STRUCT
+
+        protocol = bus.remote_protocol  # type: ignore[attr-defined]
+        ws = protocol._ws
+        if not protocol._use_binary or not ws.mask:
+            return None
+        sock, lock = ws.socket, ws._send_lock
+    except (AttributeError, ImportError):
+        return None
+    head = bytes([BINARY_MESSAGE_TYPE])
+
+    def send(frames: list[tuple[int, bytes]]) -> None:
+        out = bytearray()
+        for can_id, data in frames:
+            body = head + BINARY_MSG_STRUCT.pack(0.0, can_id, len(data), 0) + data
+            out += bytes((0x82, 0x80 | len(body), 0, 0, 0, 0))  # FIN + binary, masked with a zero key
+            out += body
+        with lock:
+            if ws.closed:
+                raise ConnectionError("CAN bus connection closed")
+            sock.sendall(out)
+
+    return send
 
 
 class ImuPty:
@@ -198,7 +237,8 @@ async def run(ctx: ServiceContext) -> None:
     clock = SimClock()
     clock.advance(0.0, cfg.speed_factor)
     node.clock = clock  # stats report sim time; this service never follows the clock topic
-    clock_pub = node.publisher("clock", express=True)
+    # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same (~0.15 ms)
+    clock_pub = node.publisher("clock")
     truth_pub = node.publisher("sim/ground_truth")
 
     def teleport(req: TeleportRequest) -> Reply:
