@@ -1,7 +1,7 @@
 """Simulator benchmarks (``zagv bench --only sim``).
 
 - ``sim.raycast_541_us``: one 541-beam, 270 degree scan (20 m range) in the corridor world, median over poses along
-  the corridor and the hall.
+  the corridor and the hall (``_worst_us``: the slowest pose; ``sim.raycast_1081_us``: 0.25 degree scans).
 - ``sim.step_us``: one 5 ms physics step with both controllers operational (TPDOs, heartbeats) while driving.
 - ``sim.core_speed_factor``: sim seconds per CPU second of the core alone: 200 steps + 50 scans per sim second.
 - ``sim.speed_factor_alone``: the simulator service in free-run (``speed_factor = 0``) with its router and CAN bus,
@@ -32,16 +32,23 @@ POSES = [(0.0, 0.0, 0.0), (3.0, 3.2, 0.0), (10.0, 3.2, 0.0), (15.0, 3.0, math.pi
          (23.5, 12.0, 1.57), (26.8, 6.6, 1.0), (13.6, 3.2, -1.0)]
 
 
-def raycast_rows() -> list[BenchRow]:
-    world = World.load_builtin("corridor")
-    angles = np.linspace(-0.75 * math.pi, 0.75 * math.pi, 541)
+def _scan_medians(world: World, beams: int) -> list[float]:
+    angles = np.linspace(-0.75 * math.pi, 0.75 * math.pi, beams)
     medians = []
     for x, y, th in POSES:
-        beams = angles + th
-        times = time_calls(lambda x=x, y=y, beams=beams: world.raycast(x, y, beams, 20.0), repeat=100, max_s=2.0)
+        rays = angles + th
+        times = time_calls(lambda x=x, y=y, rays=rays: world.raycast(x, y, rays, 20.0), repeat=100, max_s=2.0)
         medians.append(float(np.median(times)))
-    return [BenchRow("sim.raycast_541_us", float(np.median(medians)) * 1e6, "us", "< 1000 (50 Hz x 5x on a core)"),
-            BenchRow("sim.raycast_541_worst_us", max(medians) * 1e6, "us")]
+    return medians
+
+
+def raycast_rows() -> list[BenchRow]:
+    world = World.load_builtin("corridor")
+    m541 = _scan_medians(world, 541)
+    m1081 = _scan_medians(world, 1081)
+    return [BenchRow("sim.raycast_541_us", float(np.median(m541)) * 1e6, "us", "< 1000 (50 Hz x 5x on a core)"),
+            BenchRow("sim.raycast_541_worst_us", max(m541) * 1e6, "us"),
+            BenchRow("sim.raycast_1081_us", float(np.median(m1081)) * 1e6, "us", "0.25 deg at 25 Hz")]
 
 
 def driving_sim() -> Simulation:
