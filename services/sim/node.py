@@ -7,7 +7,10 @@ When it cannot keep up it re-anchors instead of bursting, and the achieved facto
 
 Published: ``clock`` every ``clock_period_s`` of sim time (default 10 ms: services' 20-50 Hz loops wake on
 exact multiples without a message per physics step; at 5x that is 500 messages per wall second),
-``sim/ground_truth`` at ``ground_truth_hz`` (default 50 Hz sim). Queries: ``sim/teleport``, ``sim/obstacles``.
+``sim/ground_truth`` at ``ground_truth_hz`` (default 50 Hz sim: the true pose in the world/map frame and the true
+body-frame twist; ``collided`` latches on contact until a teleport). Queries: ``sim/teleport`` (moves the robot;
+the IMU yaw turns with it) and ``sim/obstacles`` (``add`` with an id and a rect, or the id of a dynamic obstacle
+of the world file to activate it; ``remove`` by id; ``clear``).
 
 Hardware: two emulated RoboteQ controllers on the CAN bus (python-can ``remote`` client to the simulated bus;
 frames are handled on the event loop as soon as the socket is readable), the emulated LMS111
