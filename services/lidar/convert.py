@@ -49,7 +49,8 @@ def to_laserscan(
     if scan.scan_frequency_raw == 0:
         raise ColaError("LMDscandata scan frequency is 0")
     mm = dist.values * dist.scale + dist.offset
-    ranges = (mm * 1e-3).astype(np.float32)
+    with np.errstate(over="ignore"):  # an absurd scale factor overflows float32 to inf: "no return"
+        ranges = (mm * 1e-3).astype(np.float32)
     ranges[(dist.values == 0) | (ranges > range_max_m)] = np.inf
     ranges[ranges < range_min_m] = -np.inf
     step_rad = math.radians(dist.step_raw / 1e4)
@@ -59,7 +60,8 @@ def to_laserscan(
     if intensities:
         ch = scan.channel("RSSI1")
         if ch is not None and ch.values.size == dist.values.size:
-            rssi = ch.scaled.astype(np.float32).tobytes()
+            with np.errstate(over="ignore"):
+                rssi = ch.scaled.astype(np.float32).tobytes()
     return LaserScan(
         stamp=stamp,
         frame=frame,
