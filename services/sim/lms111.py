@@ -162,12 +162,15 @@ class Lms111Emulator:
             self._server.close()
         for client in list(self.clients):
             client.writer.close()
-        tasks = [t for t in (self._scan_task, *self._tasks) if t is not None]
-        for t in tasks:
-            t.cancel()
-        for t in tasks:
+        if self._scan_task is not None:
+            self._scan_task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
-                await t
+                await self._scan_task
+        # the connection handlers end by themselves once their transport is closed (EOF)
+        if self._tasks:
+            _, late = await asyncio.wait(set(self._tasks), timeout=2.0)
+            for t in late:
+                t.cancel()
         if self._server is not None:
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
@@ -351,8 +354,9 @@ class Lms111Emulator:
         if r.shape != angles.shape:
             raise ValueError(f"scan_source returned {r.shape} ranges for {angles.shape} beams")
         echo = np.isfinite(r) & (r < self.max_range_m) & (r >= 0)
+        r = np.where(echo, r, 0.0)
         noisy = r + self.rng.normal(0.0, self.range_noise_m, r.shape) if self.range_noise_m else r
-        mm = np.where(echo, np.clip(np.rint(np.nan_to_num(noisy) * 1000.0), 1, 65535), 0).astype(np.int64)
+        mm = np.where(echo, np.clip(np.rint(noisy * 1000.0), 1, 65535), 0).astype(np.int64)
         return float(stamp), mm
 
     def _device_us(self, t: float) -> int:
@@ -398,14 +402,17 @@ class Lms111Emulator:
         return np.where(mm > 0, np.maximum(value, 1), 0)
 
     async def _scan_loop(self) -> None:
+        """One scan per period on ``clock``: t_k = anchor + k / f (no drift); a late loop re-anchors at now."""
         period = 1.0 / self.frequency_hz
-        t_next = self.clock.now() + period
+        anchor, k = self.clock.now(), 1
         skipped = 0
         while True:
-            await self.clock.sleep_until(t_next)
-            period = 1.0 / self.frequency_hz  # may change through mLMPsetscancfg
+            await self.clock.sleep_until(anchor + k * period)
+            k += 1
             now = self.clock.now()
-            t_next = t_next + period if now < t_next + period else now + period
+            if 1.0 / self.frequency_hz != period or now > anchor + k * period:
+                period = 1.0 / self.frequency_hz  # changed by mLMPsetscancfg, or we fell behind
+                anchor, k = now, 1
             if not self.measuring:
                 continue
             self.scan_counter = (self.scan_counter + 1) & 0xFFFF
@@ -426,10 +433,3 @@ class Lms111Emulator:
                     self.scans_sent += 1
                 else:
                     client.dropped_scans += 1
-
-
-def rep103_angles(resolution_deg: float = 0.5) -> np.ndarray:
-    """The full 270 deg beam angles in REP-103 radians (-135 .. +135 deg) at ``resolution_deg``."""
-    n = round(270.0 / resolution_deg) + 1
-    return np.radians(-135.0 + resolution_deg * np.arange(n))
-
