@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import math
 import os
@@ -150,5 +151,68 @@ async def test_reconnects_after_the_scanner_restarts(lidar_process, scans):
         assert got[-1].scan_counter < 200  # from the new scanner (its counters start again)
         check_ranges(got[-1], room, emu.range_noise_m)
         assert "reconnecting" in log_of(proc)
+    finally:
+        await emu.stop()
+
+
+@pytest.fixture
+async def lidar_in_process(router):
+    """A LidarNode in the test's event loop (for its counters); stopped at teardown."""
+    from services.lidar.config import LidarConfig
+    from services.lidar.node import LidarNode
+
+    running = []
+
+    async def start(robot_id: str, **config) -> LidarNode:  # noqa: ANN003
+        session = open_session(ZenohSettings(connect=[router]))
+        node = Node("lidar", session, Keys(robot_id))
+        lidar = LidarNode(node, LidarConfig(**config), Pose2D(x=0.3))
+        stop = asyncio.Event()
+        task = asyncio.get_running_loop().create_task(lidar.run(stop))
+        running.append((stop, task, node, session))
+        return lidar
+
+    yield start
+    for stop, task, node, session in running:
+        stop.set()
+        await asyncio.wait_for(task, 10)
+        node.close()
+        session.close()
+
+
+async def test_watchdog_reconnects_when_the_scanner_stops_measuring(lidar_in_process, scans):
+    from services.lidar.cola import cmd_login, cmd_method
+    from services.lidar.link import ColaLink
+
+    port = new_free_port()
+    emu, room = await start_emulator(port)
+    try:
+        got = await scans("lw")
+        lidar = await lidar_in_process("lw", port=port, watchdog_timeout_s=0.5, reconnect_min_s=0.1)
+        await wait_for(lambda: len(got) >= 5, timeout_s=30, message="no scans")
+        assert got[-1].mount == Pose2D(x=0.3)
+        # another client stops the measurement: the stream goes silent although the connection stays up
+        other = await ColaLink.connect("127.0.0.1", port, connect_timeout_s=3, reply_timeout_s=3,
+                                       max_telegram_bytes=65536)
+        await other.request(cmd_login())
+        await other.request(cmd_method("LMCstopmeas"))
+        other.close()
+        await wait_for(lambda: "watchdog" in lidar.last_error, timeout_s=10, message="the watchdog did not fire")
+        before = len(got)
+        await wait_for(lambda: len(got) >= before + 5, timeout_s=20, message="scans did not resume")
+        assert lidar.connects >= 2 and emu.measuring  # the new session started the measurement again
+    finally:
+        await emu.stop()
+
+
+async def test_refused_login_is_reported_and_retried(lidar_in_process, scans):
+    port = new_free_port()
+    emu, _ = await start_emulator(port)
+    try:
+        got = await scans("ll")
+        lidar = await lidar_in_process("ll", port=port, login_password_hash="DEADBEEF", reconnect_max_s=0.3)
+        await wait_for(lambda: lidar.connects >= 3, timeout_s=20, message="no retries")
+        assert "login refused" in lidar.last_error and not got
+        assert lidar.node.extra_stats["lidar"]["last_error"].startswith("login refused")
     finally:
         await emu.stop()
