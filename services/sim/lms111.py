@@ -139,6 +139,7 @@ class Lms111Emulator:
         self.telegram_counter = 0
         self.scan_counter = 0
         self.scans_sent = 0
+        self.source_failures = 0
         self.boot_s = 0.0
         self.clients: set[_Client] = set()
         self._server: asyncio.AbstractServer | None = None
@@ -426,7 +427,9 @@ class Lms111Emulator:
             try:
                 telegram = self._scan_telegram("sSN", self._measure())
             except Exception:
-                log.exception("LMS111 emulator: scan source failed")
+                self.source_failures += 1
+                if self.source_failures % 250 == 1:  # rate-limited: a broken source must not flood the log
+                    log.exception("LMS111 emulator: scan source failed (%d times)", self.source_failures)
                 continue
             for client in streaming:
                 if client.send(telegram):
