@@ -241,3 +241,31 @@ async def test_a_client_that_disconnects_does_not_stop_the_emulator(lms, links):
 def test_invalid_construction_is_refused():
     with pytest.raises(ValueError, match="50 Hz at 0.5"):
         Lms111Emulator("127.0.0.1", 0, None, WallClock(), frequency_hz=50, resolution_deg=0.25)
+
+
+class BrokenSource:
+    """A scan source that fails (e.g. a world being reloaded); the emulator must stay up."""
+
+    def laser_ranges(self, angles_rad: np.ndarray) -> tuple[float, np.ndarray]:
+        raise RuntimeError("world not loaded")
+
+
+async def test_a_failing_scan_source_gives_sfa_and_the_device_stays_up(links):
+    clock = SimClock()
+    clock.advance(0.0)
+    emu = Lms111Emulator("127.0.0.1", 0, BrokenSource(), clock)
+    await emu.start()
+    try:
+        link = await links(emu)
+        with pytest.raises(DeviceError) as exc:
+            await link.request(cmd_read("LMDscandata"))
+        assert exc.value.code == 6
+        await link.request(cmd_stream(True))
+        for step in range(1, 11):
+            clock.advance(step * 0.04 + 0.001)
+            await asyncio.sleep(0)
+        await wait_for(lambda: emu.source_failures >= 10, timeout_s=5)
+        assert emu.scans_sent == 0
+        assert decode_device_state(await link.request(cmd_read("STlms"))) == 7
+    finally:
+        await emu.stop()

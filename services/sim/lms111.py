@@ -10,8 +10,8 @@ The server side of the protocol is written here on its own (the simulator import
   ``sRN``/``sWN LMPoutputRange``, ``sWN LMDscandatacfg`` (remission 8/16 bit, device name, time info, output
   interval), ``sMN LMCstartmeas``/``LMCstopmeas``, ``sRN STlms``, ``sMN Run``, ``sMN mEEwriteall``;
 - ``sRN LMDscandata`` (one scan now) and ``sEN LMDscandata 1|0`` (then ``sSN LMDscandata`` per scan);
-- ``sFA <code>`` for an unknown command type (C), method (2), variable (3), event (F), a refused access (1, A)
-  and invalid data (5).
+- ``sFA <code>`` for an unknown command type (C), method (2), variable (3), event (F), a refused access (1, A),
+  invalid data (5) and a failure of its own (6, e.g. the scan source raised).
 
 Scans are paced on ``clock`` at the scan frequency. The scanner's own angles go on the wire: 90 deg is straight
 ahead, counter-clockwise, -45 .. +225 deg; ``scan_source.laser_ranges(angles_rad)`` is asked in the laser frame of
@@ -44,7 +44,7 @@ STATE_IDLE, STATE_READY_FOR_MEASUREMENT = 3, 7
 
 #: sFA error codes (hex on the wire)
 ERR_ACCESS_DENIED, ERR_UNKNOWN_METHOD, ERR_UNKNOWN_VARIABLE, ERR_LOCAL_CONDITION = 1, 2, 3, 4
-ERR_INVALID_DATA, ERR_WRITE_DENIED, ERR_UNKNOWN_COMMAND, ERR_UNKNOWN_EVENT = 5, 10, 12, 15
+ERR_INVALID_DATA, ERR_UNKNOWN_ERROR, ERR_WRITE_DENIED, ERR_UNKNOWN_COMMAND, ERR_UNKNOWN_EVENT = 5, 6, 10, 12, 15
 
 _HEX16 = [format(i, "X") for i in range(65536)]
 
@@ -229,6 +229,9 @@ class Lms111Emulator:
             return self._dispatch(client, tokens)
         except RequestError as exc:
             return f"sFA {exc.code:X}"
+        except Exception:  # e.g. the scan source failed: the device reports an error and stays up
+            log.exception("LMS111 emulator: %r failed", request[:60])
+            return f"sFA {ERR_UNKNOWN_ERROR:X}"
 
     def _dispatch(self, client: _Client, t: list[str]) -> str:
         kind = t[0]
