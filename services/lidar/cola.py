@@ -207,7 +207,10 @@ def hex_s32(value: int) -> str:
 class Tokens:
     """The space-separated tokens of one payload, with their byte offsets for vectorised number decoding."""
 
-    __slots__ = ("payload", "arr", "starts", "ends", "count")
+    __slots__ = ("payload", "arr", "starts", "ends", "count", "_head")
+
+    #: the first tokens are also kept as a plain list (header fields are read one by one)
+    HEAD = 32
 
     def __init__(self, payload: bytes) -> None:
         self.payload = payload
@@ -220,6 +223,7 @@ class Tokens:
         self.ends[:-1] = spaces
         self.ends[-1] = len(payload)
         self.count = len(self.starts)
+        self._head: list[bytes] | None = None
 
     def __len__(self) -> int:
         return self.count
@@ -227,6 +231,10 @@ class Tokens:
     def __getitem__(self, i: int) -> bytes:
         if not 0 <= i < self.count:
             raise ColaError(f"telegram ends after {self.count} tokens; token {i} is missing")
+        if i < self.HEAD:
+            if self._head is None:
+                self._head = self.payload.split(b" ", self.HEAD)  # element HEAD (if any) is the remainder
+            return self._head[i]
         return self.payload[self.starts[i]:self.ends[i]]
 
     def hex_array(self, first: int, count: int, field: str, max_digits: int = 4) -> np.ndarray:
