@@ -91,6 +91,9 @@ class LidarNode:
             except (LinkLost, ColaError, OSError) as exc:
                 self.last_error = str(exc)
                 self.log.warning("LMS111 at %s:%d: %s; reconnecting in %.1f s", cfg.host, cfg.port, exc, backoff)
+            except Exception as exc:  # a bug must not end the service: report it and start a new session
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                self.log.exception("LMS111 session failed; reconnecting in %.1f s", backoff)
             finally:
                 self._close_link()
                 self._update_stats()
