@@ -4,7 +4,6 @@ the decoded ranges agree with ray-casting the world at the ground-truth pose."""
 from __future__ import annotations
 
 import asyncio
-import importlib.util
 import math
 import time
 
@@ -19,13 +18,7 @@ from services.lidar.link import ColaLink, LinkLost
 from services.lidar.telegrams import decode_method_result, decode_scandata
 from tests.support.waiting import wait_for, wait_for_sync
 
-SIM_AVAILABLE = importlib.util.find_spec("services.sim.__main__") is not None
-
-pytestmark = [
-    pytest.mark.integration,
-    # Waiting for the simulator (its world, ray casting and node) to be merged; then this mark is removed.
-    pytest.mark.skipif(not SIM_AVAILABLE, reason="the simulator is not merged yet"),
-]
+pytestmark = pytest.mark.integration
 
 SIM_NOISE_M = 0.012 + 0.01  # the scan source's noise plus the emulator's, as an upper bound on sigma
 MAX_RANGE_M = 20.0
