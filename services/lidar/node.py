@@ -62,6 +62,7 @@ class LidarNode:
         self.scanner_config: ScanConfig | None = None
         self.last_error = ""
         self._bad_logged_at = -math.inf
+        self._failure_logged_at = -math.inf
         self.link: ColaLink | None = None
         node.extra_stats["lidar"] = self.stats()
 
@@ -89,8 +90,13 @@ class LidarNode:
             try:
                 await self._session(stop)
             except (LinkLost, ColaError, OSError) as exc:
+                # the same failure again (a scanner still booting) is logged at most every 30 s
+                now = time.monotonic()
+                if str(exc) != self.last_error or now - self._failure_logged_at > 30.0:
+                    self._failure_logged_at = now
+                    self.log.warning("LMS111 at %s:%d: %s; reconnecting in %.1f s", cfg.host, cfg.port, exc,
+                                     backoff)
                 self.last_error = str(exc)
-                self.log.warning("LMS111 at %s:%d: %s; reconnecting in %.1f s", cfg.host, cfg.port, exc, backoff)
             except Exception as exc:  # a bug must not end the service: report it and start a new session
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 self.log.exception("LMS111 session failed; reconnecting in %.1f s", backoff)
