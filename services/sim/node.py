@@ -239,7 +239,8 @@ async def run(ctx: ServiceContext) -> None:
         node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
     else:
         try:
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock)
+            # range noise is added once, by the scan source (sim.laser_noise_m)
+            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock, range_noise_m=0.0)
             await lidar.start()
         except OSError as exc:
             node.log.error("LMS111 emulator cannot listen on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
