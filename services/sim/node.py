@@ -284,10 +284,10 @@ async def run(ctx: ServiceContext) -> None:
         node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
     else:
         try:
+            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
             lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
                                    frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
-                                   range_noise_m=cfg.laser_noise_m, max_range_m=cfg.laser_max_range_m,
-                                   seed=cfg.seed + 4)
+                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
             await lidar.start()
         except (OSError, ValueError, TypeError) as exc:
             node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
