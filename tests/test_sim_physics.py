@@ -190,3 +190,15 @@ def test_simulation_publishes_consistent_encoders_and_imu() -> None:
     assert sim.imu.line() == b"#YPR=-0.00,0.00,0.00\r\n" or sim.imu.line() == b"#YPR=0.00,0.00,0.00\r\n"
     assert not sim.teleport(math.nan, 0.0, 0.0)
     assert sim.teleport(1.0, 1.0, 0.5) and (sim.robot.x, sim.robot.y, sim.robot.theta) == (1.0, 1.0, 0.5)
+
+
+@pytest.mark.parametrize(("override", "message"), [
+    ({"step_s": 0.0}, "step_s"), ({"node_ids": [1, 1]}, "node_ids"), ({"start_pose": [1.0]}, "start_pose"),
+    ({"steer_zero_counts": [0]}, "steer_zero_counts"), ({"slip_ratio": 1.5}, "slip_ratio"),
+])
+def test_bad_sim_config_is_named(override: dict, message: str) -> None:
+    import msgspec
+
+    cfg = msgspec.structs.replace(SimConfig(), **override)
+    with pytest.raises(ValueError, match=message):
+        Simulation(cfg, RobotSpec(), World.load_builtin("empty_room"))

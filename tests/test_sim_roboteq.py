@@ -318,3 +318,16 @@ def test_rpdo_remapped_to_rpm_speed_and_counters_wrap() -> None:
     node.traction.position_counts = 2**31 + 5.0
     assert node.counter(1) == -(2**31) + 5
     assert int.from_bytes(sdo_read(node, 0x2104, 1)[4:8], "little", signed=True) == -(2**31) + 5
+
+
+def test_steering_limit_clamps_the_target_and_flags_it() -> None:
+    from services.sim.roboteq import FM_FORWARD_LIMIT, FM_REVERSE_LIMIT
+
+    node = make(steer_limit_counts=100000)
+    node.boot(0.0)
+    sdo_write(node, 0x2001, 2, 150000)
+    assert node.steer.target_counts == 100000.0 and node.motor_flags(2) & FM_FORWARD_LIMIT
+    sdo_write(node, 0x2001, 2, -150000)
+    assert node.steer.target_counts == -100000.0 and node.motor_flags(2) & FM_REVERSE_LIMIT
+    sdo_write(node, 0x2001, 2, 5000)
+    assert node.motor_flags(2) == 0

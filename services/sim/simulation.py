@@ -65,7 +65,7 @@ class Simulation:
         self.scan_source = ScanSource(
             world, self.robot, lambda: self.now_s,
             (spec.laser_mount_x_m, spec.laser_mount_y_m, spec.laser_mount_theta_rad),
-            cfg.laser_max_range_m, 0.0, cfg.seed + 3)  # range noise is the LMS111 emulator's job
+            cfg.laser_max_range_m, cfg.laser_noise_m, cfg.seed + 3)  # the only range noise (the emulator adds none)
 
     # ------------------------------------------------------------------ CAN
 

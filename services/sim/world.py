@@ -80,7 +80,8 @@ class World:
         self._solid_flat = padded.ravel()
         edt = ndimage.distance_transform_edt(~padded).astype(np.float32)  # cells, centre to nearest solid centre
         self._edt_flat = edt.ravel()
-        self._clear_flat = np.maximum(edt - SQRT2, 0.0).astype(np.float64).ravel()
+        # free cells: the clearance in cells (>= 0); solid cells: -1, so one lookup tells both
+        self._clear_flat = np.where(padded, -1.0, np.maximum(edt - SQRT2, 0.0)).astype(np.float64).ravel()
         self._runs_flat = _free_run_table(padded)
         self._active_rects = np.zeros((0, 4))
         self._refresh_rects()
@@ -222,7 +223,6 @@ class World:
         run_offset[1] = 2 * cells + (d[1] > 0.0) * cells
         origin = np.array([[gx], [gy]])
         weights = np.array([1.0, float(self._cols_p)])
-        solid = self._solid_flat
         clear = self._clear_flat
         runs = self._runs_flat
         t = np.zeros(n)
@@ -234,14 +234,15 @@ class World:
             p += origin
             cell = np.floor(p + nudge)
             flat = (weights @ cell).astype(np.intp)
-            hit = solid.take(flat)
+            clearance = clear.take(flat)
+            hit = clearance < 0.0
             exit_ = cell + side
             exit_ -= p
             exit_ *= inv_d  # distance to leave the cell along x (row 0) and along y (row 1)
             run_end = runs.take(run_offset + flat) * inv_d
             run_end += exit_  # distance to the end of the free run along x (row 0) and along y (row 1)
             np.minimum(run_end, exit_[::-1], out=run_end)  # ... but only while still in this row / column
-            step = np.maximum(run_end.max(axis=0), clear.take(flat))
+            step = np.maximum(run_end.max(axis=0), clearance)
             step += 1e-6
             np.greater(alive, hit, out=alive)  # alive and not hit
             step *= alive
