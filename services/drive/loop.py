@@ -356,9 +356,10 @@ class DriveLoop:
             except LinkError as exc:
                 self._link_lost(str(exc))
                 link = None
-        if link is not None and cmd_rx != self._cmd_rx_done:  # a new command is on the bus: time its way through
+        if cmd_rx != self._cmd_rx_done:  # a new command went out this cycle: time its way through the drive
             self._cmd_rx_done = cmd_rx
-            self.cmd_latency.append(time.perf_counter() - cmd_rx)
+            if link is not None:
+                self.cmd_latency.append(time.perf_counter() - cmd_rx)
 
         if link is not None and feedback:
             dyaw = None
