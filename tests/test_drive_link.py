@@ -216,3 +216,55 @@ def test_fault_flag_stops_and_estop_release(rig: Rig) -> None:
         assert not any(n.estopped for n in rig.nodes)
     finally:
         loop.stop()
+
+
+def test_fixed_mapping_is_accepted_only_when_it_already_matches(rig: Rig) -> None:
+    from services.sim.roboteq import ABORT_PDO_MAPPING, SdoAbort
+
+    def refuse_mapping(node: RoboteqNode) -> None:
+        write = node.write_object
+
+        def fixed(index: int, sub: int, raw: bytes, now_s: float) -> None:
+            if index & 0xFF00 in (0x1600, 0x1A00):
+                raise SdoAbort(ABORT_PDO_MAPPING)
+            write(index, sub, raw, now_s)
+
+        node.write_object = fixed
+
+    with rig.lock:
+        for n in rig.nodes:
+            refuse_mapping(n)
+    # the emulator's fixed TPDOs equal ours, but its RPDO1 carries !G per mille, not !S rpm: refused, clearly
+    link = RoboteqLink(link_settings(rig, startup_timeout_s=1.0))
+    with pytest.raises(LinkError, match=r"refused the mapping of 0x1600 .* differs"):
+        link.open()
+    assert not link.is_open
+    with rig.lock:
+        for n in rig.nodes:
+            n.rpdos[0].mapping = list(RPDO1_MAP)  # a controller configured beforehand (Roborun) as we need
+    link = RoboteqLink(link_settings(rig, startup_timeout_s=1.0))
+    link.open()
+    link.close()
+
+
+def test_sim_ticker_follows_the_clock_and_wall_ticker_wakes_on_poke() -> None:
+    from services.drive.loop import SimTicker
+
+    stop = threading.Event()
+    sim = SimTicker(100.0)
+    out: list[tuple[float, bool]] = []
+    t = threading.Thread(target=lambda: [out.append(sim.wait(stop)) for _ in range(3)], daemon=True)
+    t.start()
+    for stamp in (1.0, 1.005, 1.01, 1.05):  # a 40 ms step: one cycle, re-anchored, counted
+        sim.advance(stamp)
+        time.sleep(0.05)
+    t.join(2)
+    assert [round(n, 3) for n, _ in out] == [1.0, 1.01, 1.05] and all(p for _, p in out)
+    assert sim.overruns == 1
+
+    wall = WallTicker(10.0, 0.0)
+    wall.wait(stop)  # anchors the schedule
+    threading.Timer(0.01, wall.poke).start()
+    t0 = time.perf_counter()
+    _, periodic = wall.wait(stop)
+    assert not periodic and time.perf_counter() - t0 < 0.09  # woken by the poke, before the 100 ms deadline

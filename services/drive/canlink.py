@@ -247,27 +247,39 @@ class RoboteqLink:
 
     def _map_pdo(self, node: canopen.RemoteNode, comm: int, mapping: int, cob_id: int,
                  entries: Sequence[tuple[int, int, int]], *, trans_type: int, timer_ms: int) -> None:
-        """Write one PDO's mapping (CiA 301 sequence); accept a refusal when the read-back already matches."""
+        """Write one PDO's mapping (CiA 301 sequence) where the controller allows it.
+
+        A refused comm parameter (read-only on old firmware) is left as the controller has it; a refused mapping is
+        accepted only when the read-back already matches ours, else the PDO stays disabled and LinkError says why
+        (a traction command in other units than we send must never be enabled).
+        """
         sdo = node.sdo
         want = [mapping_entry(*e) for e in entries]
         try:
-            sdo.download(comm, 1, struct.pack("<I", cob_id | 0x80000000))
-            sdo.download(mapping, 0, b"\x00")
-            for j, entry in enumerate(want, start=1):
-                sdo.download(mapping, j, struct.pack("<I", entry))
-            sdo.download(mapping, 0, bytes([len(want)]))
-            sdo.download(comm, 2, bytes([trans_type]))
-            if comm >= 0x1800 and timer_ms:
-                with contextlib.suppress(canopen.SdoAbortedError):  # rate may only be settable by CTPS
-                    sdo.download(comm, 5, struct.pack("<H", timer_ms))
-            sdo.download(comm, 1, struct.pack("<I", cob_id))
-        except canopen.SdoAbortedError as exc:
-            have = self._read_mapping(node, mapping)
-            if have != want:
-                raise LinkError(f"node {node.id} refused the mapping of 0x{mapping:04X} (abort 0x{exc.code:08X}) "
-                                f"and its mapping {[hex(v) for v in have]} differs from {[hex(v) for v in want]}"
-                                ) from None
-            log.info("node %d: mapping 0x%04X is fixed but already as needed", node.id, mapping)
+            try:
+                sdo.download(comm, 1, struct.pack("<I", cob_id | 0x80000000))
+                comm_writable = True
+            except canopen.SdoAbortedError:
+                comm_writable = False
+            try:
+                sdo.download(mapping, 0, b"\x00")
+                for j, entry in enumerate(want, start=1):
+                    sdo.download(mapping, j, struct.pack("<I", entry))
+                sdo.download(mapping, 0, bytes([len(want)]))
+            except canopen.SdoAbortedError as exc:
+                have = self._read_mapping(node, mapping)
+                if have != want:
+                    raise LinkError(f"node {node.id} refused the mapping of 0x{mapping:04X} (abort 0x{exc.code:08X}) "
+                                    f"and its mapping {[hex(v) for v in have]} differs from {[hex(v) for v in want]}"
+                                    ) from None
+                log.info("node %d: mapping 0x%04X is fixed but already as needed", node.id, mapping)
+            if comm_writable:
+                with contextlib.suppress(canopen.SdoAbortedError):
+                    sdo.download(comm, 2, bytes([trans_type]))
+                if comm >= 0x1800 and timer_ms:
+                    with contextlib.suppress(canopen.SdoAbortedError):  # rate may only be settable by CTPS
+                        sdo.download(comm, 5, struct.pack("<H", timer_ms))
+                sdo.download(comm, 1, struct.pack("<I", cob_id))
         except canopen.SdoCommunicationError as exc:
             raise LinkError(f"node {node.id}: SDO failed while mapping 0x{mapping:04X}: {exc}") from None
 
