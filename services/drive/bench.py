@@ -3,17 +3,18 @@
 ``kinematics.ik_fk_us``: one inverse + least-squares forward kinematics of the two-module chassis (median, us);
 ``kinematics.command_us``: one full command path (limits, IK, optimisation, motor units) plus one odometry update.
 
-The ``drive`` group starts its own processes on free loopback ports: a Zenoh router (in this process), the
+The ``drive`` group starts its own processes on free loopback ports: a Zenoh router, the
 simulated CAN bus (``services.sim.canbus``), the simulator (its emulated RoboteQ controllers, wall-paced at 1x)
 and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
 
 - ``drive.loop_hz`` / ``drive.jitter_p99_ms``: the loop's own measurement (``wheels``: mean rate and p99 of
   |period - 1 ms| over its last 2000 periods) after ``settle_s`` of running without commands.
 - ``drive.cmd_to_can_p99_ms``: ``cmd_vel`` put by a Zenoh client (through the router, as nav publishes it) until
-  the RPDO1 frame carrying the new traction speed is received by a CAN client on the simulated bus. The command
+  the RPDO1 frame carrying the new traction speed goes onto the simulated bus (the bus's own frame timestamp, seen
+  by a CAN client on it). The command
   alternates between +vy and -vy (the wheels stay at 90 deg, the speed changes sign) and the acceleration limits
   are raised for this run, so the very first RPDO after the command differs. It includes the Zenoh hop and the
-  simulated bus (a Python websocket server relaying every frame), so it is an upper bound of the drive's share;
+  drive's websocket to the simulated bus (a Python server), so it is an upper bound of the drive's share;
   ``drive.rx_to_rpdo_*`` is that share alone, measured by the drive (cmd_vel callback -> RPDO written).
 """
 
@@ -39,7 +40,7 @@ from proto.keys import Keys
 from proto.messages import Twist2D, WheelStates
 from services.common.bench import BenchRow, time_calls
 from services.common.robot import RobotSpec
-from services.common.session import open_session, router_settings
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
 from services.drive.kinematics import SwerveKinematics, Twist
@@ -95,28 +96,29 @@ def _spawn(*args: str, fifo: int = 0) -> subprocess.Popen[bytes]:
 
 
 class _RpdoWatch:
-    """A CAN client on the simulated bus recording (perf_counter, traction rpm) of node 1's RPDO1 frames."""
+    """A CAN client on the simulated bus recording (bus time, traction rpm) of node 1's RPDO1 frames.
 
-    def __init__(self, channel: str, cob_id: int = 0x201, fifo: int = 0) -> None:
+    The bus time is the frame's timestamp set by the simulated bus when the frame went onto it (python-can's virtual
+    bus stamps ``time.time()`` on send and the remote protocol carries it), so the relay to this client is not part
+    of the measurement.
+    """
+
+    def __init__(self, channel: str, cob_id: int = 0x201) -> None:
         import can
 
         self.bus = can.Bus(interface="remote", channel=channel)
         self.cob_id = cob_id
         self.frames: list[tuple[float, int]] = []
         self.lock = threading.Lock()
-        self.fifo = fifo
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        if self.fifo:
-            with contextlib.suppress(OSError):
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.fifo))
         while not self._stop.is_set():
             msg = self.bus.recv(0.1)
             if msg is not None and msg.arbitration_id == self.cob_id and len(msg.data) == 8:
-                t = time.perf_counter()
+                t = msg.timestamp
                 rpm = int.from_bytes(msg.data[:4], "little", signed=True)
                 with self.lock:
                     self.frames.append((t, rpm))
@@ -145,10 +147,10 @@ def _stats(session, keys: Keys) -> dict:  # noqa: ANN001 - zenoh.Session
 
 
 def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None = None,
-                rpdo_refresh_s: float = 0.0) -> list[BenchRow]:
+                rpdo_refresh_s: float = 0.0, rate_hz: float = 1000.0) -> list[BenchRow]:
     """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
-    drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning) and the CAN bus server and the
-    observing CAN client at SCHED_FIFO 10, as stand-ins for CAN hardware; otherwise everything is time-shared.
+    drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning), and the Zenoh router and the CAN bus
+    server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise everything is time-shared.
     """
     if realtime is None:
         realtime = realtime_allowed()
@@ -157,24 +159,28 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     channel = f"ws://127.0.0.1:{can_port}/"
     keys = Keys("r1")
-    router = open_session(router_settings([endpoint]))
-    procs = [_spawn("services.sim.canbus", "--port", str(can_port), fifo=fifo)]
+    # the router in its own process: a router embedded here would share this process's interpreter with the busy
+    # CAN observer thread, and forwarding would wait for it
+    procs = [_spawn("services.cli", "router", "--listen", endpoint, fifo=fifo),
+             _spawn("services.sim.canbus", "--port", str(can_port), fifo=fifo)]
+    watcher = None
     watch = None
     client = None
     try:
         time.sleep(0.5)
+        watcher = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         procs.append(_spawn("services.sim", "--connect", endpoint, "--set", f'sim.can_channel="{channel}"',
                             "--set", f"sim.lidar_port={lidar_port}", "--set", 'sim.world="empty_room"',
                             "--set", "sim.speed_factor=1.0"))
         procs.append(_spawn("services.drive", "--connect", endpoint, "--set", f'drive.can_channel="{channel}"',
-                            "--set", "drive.rate_hz=1000.0", "--set", "robot.ax_max_mps2=1000.0",
+                            "--set", f"drive.rate_hz={rate_hz}", "--set", "robot.ax_max_mps2=1000.0",
                             "--set", "robot.ay_max_mps2=1000.0", "--set", "robot.alpha_max_radps2=1000.0",
                             "--set", f"drive.realtime_priority={50 if realtime else 0}",
                             "--set", f"drive.rpdo_refresh_s={rpdo_refresh_s}",
                             "--set", f"drive.spin_s={0.0 if realtime else 0.0003}", fifo=fifo))
         latest: list[WheelStates] = []
         key = keys("wheels")
-        sub = router.declare_subscriber(key, lambda s: latest.append(codec.decode_as(WheelStates,
+        sub = watcher.declare_subscriber(key, lambda s: latest.append(codec.decode_as(WheelStates,
                                                                                      s.payload.to_bytes(), key)))
         deadline = time.monotonic() + 60
         while not (latest and latest[-1].link_ok):
@@ -187,7 +193,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", f"1000 (target; {mode})"),
                 BenchRow("drive.jitter_p99_ms", quiet.loop_jitter_p99_ms, "ms", "<= 0.2")]
 
-        watch = _RpdoWatch(channel, fifo=fifo)
+        watch = _RpdoWatch(channel)
         client = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         pub = client.declare_publisher(keys("cmd_vel"), express=True)
         vy = 0.08
@@ -200,7 +206,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         for _ in range(samples):
             sign = -sign
             payload = codec.encode(Twist2D(vy=sign * vy))
-            t0 = time.perf_counter()
+            t0 = time.time()  # the simulated bus stamps frames with time.time()
             pub.put(payload)
             sent.append((t0, sign))
             watch.sent = sent
@@ -224,7 +230,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         with_cmds = latest[-1]
         rows.append(BenchRow("drive.jitter_p99_under_cmds_ms", with_cmds.loop_jitter_p99_ms, "ms",
                              "with a cmd_vel every 20 ms"))
-        stats = _stats(router, keys)
+        stats = _stats(watcher, keys)
         rows += [BenchRow("drive.rx_to_rpdo_p50_ms", stats.get("cmd_to_bus_p50_ms", math.nan), "ms",
                           "inside drive: cmd_vel callback -> RPDO written"),
                  BenchRow("drive.rx_to_rpdo_p99_ms", stats.get("cmd_to_bus_p99_ms", math.nan), "ms", "")]
@@ -243,7 +249,8 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, 9)
                 p.wait()
-        router.close()
+        if watcher is not None:
+            watcher.close()
 
 
 BENCHES = [("kinematics", bench_kinematics), ("drive", bench_drive)]
