@@ -11,8 +11,8 @@ and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
   |period - 1 ms| over its last 2000 periods) after ``settle_s`` of running without commands.
 - ``drive.cmd_to_can_p99_ms``: ``cmd_vel`` put by a Zenoh client (through the router, as nav publishes it) until
   the RPDO1 frame carrying the new traction speed goes onto the simulated bus (the bus's own frame timestamp, seen
-  by a CAN client on it). The command
-  alternates between +vy and -vy (the wheels stay at 90 deg, the speed changes sign) and the acceleration limits
+  by a CAN client on it). The command alternates between +vy and -vy (the wheels stay at +-90 deg, the traction
+  speed changes sign, whichever of the two equivalent module states the optimiser holds) and the acceleration limits
   are raised for this run, so the very first RPDO after the command differs. It includes the Zenoh hop and the
   drive's websocket to the simulated bus (a Python server), so it is an upper bound of the drive's share;
   ``drive.rx_to_rpdo_*`` is that share alone, measured by the drive (cmd_vel callback -> RPDO written).
@@ -29,6 +29,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -96,47 +97,72 @@ def _spawn(*args: str, fifo: int = 0) -> subprocess.Popen[bytes]:
 
 
 class _RpdoWatch:
-    """A CAN client on the simulated bus recording (bus time, traction rpm) of node 1's RPDO1 frames.
+    """A CAN client on the simulated bus, in its own process, recording (bus time, traction rpm) of node 1's RPDO1.
 
     The bus time is the frame's timestamp set by the simulated bus when the frame went onto it (python-can's virtual
     bus stamps ``time.time()`` on send and the remote protocol carries it), so the relay to this client is not part
-    of the measurement.
+    of the measurement. A separate process keeps its work off the interpreter that publishes the commands.
     """
 
-    def __init__(self, channel: str, cob_id: int = 0x201) -> None:
-        import can
-
-        self.bus = can.Bus(interface="remote", channel=channel)
-        self.cob_id = cob_id
+    def __init__(self, channel: str, out: Path, cob_id: int = 0x201) -> None:
+        self.out = out
+        self.proc = _spawn("services.drive.bench", "watch", channel, str(out), str(cob_id))
         self.frames: list[tuple[float, int]] = []
-        self.lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            msg = self.bus.recv(0.1)
-            if msg is not None and msg.arbitration_id == self.cob_id and len(msg.data) == 8:
-                t = msg.timestamp
-                rpm = int.from_bytes(msg.data[:4], "little", signed=True)
-                with self.lock:
-                    self.frames.append((t, rpm))
+    def wait_ready(self, timeout_s: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not (self.out.exists() and self.out.stat().st_size > 0):
+            if time.monotonic() > deadline:
+                raise RuntimeError("drive bench: the CAN observer saw no RPDO frame")
+            time.sleep(0.05)
 
-    def first_after(self, t0: float, predicate) -> float | None:  # noqa: ANN001
-        with self.lock:
-            i = bisect.bisect_left(self.frames, (t0, -(2**31)))
-            frames = self.frames[i:i + 200]
-        for t, rpm in frames:
-            if predicate(rpm):
+    def collect(self) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, 15)
+        self.proc.wait(5)
+        rows = []
+        for line in self.out.read_text().splitlines():
+            parts = line.split()
+            if len(parts) == 2:
+                rows.append((float(parts[0]), int(parts[1])))
+        self.frames = sorted(rows)
+
+    def first_flip_after(self, t0: float, min_rpm: float) -> float | None:
+        """Bus time of the first frame after ``t0`` whose speed has the opposite sign of the last one before it."""
+        i = bisect.bisect_left(self.frames, (t0, -(2**31)))
+        if i == 0:
+            return None
+        before = self.frames[i - 1][1]
+        for t, rpm in self.frames[i:i + 200]:
+            if rpm * before < 0 and abs(rpm) >= min_rpm:
                 return t
         return None
 
     def close(self) -> None:
-        self._stop.set()
-        self._thread.join(1.0)
-        with contextlib.suppress(Exception):
-            self.bus.shutdown()
+        if self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, 9)
+            self.proc.wait()
+        shutil.rmtree(self.out.parent, ignore_errors=True)
+
+
+def watch_main(channel: str, out: str, cob_id: int) -> None:
+    """``python -m services.drive.bench watch CHANNEL FILE COB_ID``: log (bus time, rpm) lines until SIGTERM."""
+    import signal
+
+    import can
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    bus = can.Bus(interface="remote", channel=channel)
+    with open(out, "w") as f:
+        while not stop.is_set():
+            msg = bus.recv(0.1)
+            if msg is not None and msg.arbitration_id == cob_id and len(msg.data) == 8:
+                f.write(f"{msg.timestamp:.6f} {int.from_bytes(msg.data[:4], 'little', signed=True)}\n")
+                f.flush()
+    with contextlib.suppress(Exception):
+        bus.shutdown()
 
 
 def _stats(session, keys: Keys) -> dict:  # noqa: ANN001 - zenoh.Session
@@ -193,7 +219,8 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", f"1000 (target; {mode})"),
                 BenchRow("drive.jitter_p99_ms", quiet.loop_jitter_p99_ms, "ms", "<= 0.2")]
 
-        watch = _RpdoWatch(channel)
+        watch = _RpdoWatch(channel, Path(tempfile.mkdtemp(prefix="zagv-bench-")) / "rpdo.txt")
+        watch.wait_ready()
         client = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         pub = client.declare_publisher(keys("cmd_vel"), express=True)
         vy = 0.08
@@ -209,14 +236,14 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
             t0 = time.time()  # the simulated bus stamps frames with time.time()
             pub.put(payload)
             sent.append((t0, sign))
-            watch.sent = sent
             time.sleep(0.02)
         pub.put(codec.encode(Twist2D()))
         time.sleep(0.2)
+        watch.collect()
         latencies = []
         late = 0
-        for t0, sign in sent:  # a command not on the bus before the next one counts as 20 ms (censored)
-            t = watch.first_after(t0, lambda r, s=sign: r * s > 0.5 * rpm)
+        for t0, _ in sent:  # a command not on the bus before the next one counts as 20 ms (censored)
+            t = watch.first_flip_after(t0, 0.5 * rpm)
             if t is None or t - t0 >= 0.02:
                 late += 1
                 t = t0 + 0.02
@@ -254,3 +281,10 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
 
 
 BENCHES = [("kinematics", bench_kinematics), ("drive", bench_drive)]
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 5 and sys.argv[1] == "watch":
+        watch_main(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+    else:
+        sys.exit("usage: python -m services.drive.bench watch CHANNEL FILE COB_ID (a helper of the drive bench)")
