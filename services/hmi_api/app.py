@@ -136,6 +136,20 @@ def require_token(connection: ASGIConnection, _: BaseRouteHandler) -> None:
         raise NotAuthorizedException("login first: POST /api/login, then send Authorization: Bearer <token>")
 
 
+async def strict_body(request: Request) -> None:
+    """Decode the JSON body strictly against the handler's ``data`` type before Litestar's own (lax) conversion,
+    so that ``"0.1"`` for a number or ``true`` for a float is a 422, not silently converted."""
+    data_field = request.route_handler.parsed_data_field
+    if data_field is None:
+        return None
+    body = await request.body()
+    try:
+        msgspec.json.decode(body, type=data_field.annotation, strict=True)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise ValidationException(f"invalid request body: {exc}") from None
+    return None
+
+
 def _backend(request: Request | WebSocket) -> Backend:
     return request.app.state.backend
 
@@ -397,8 +411,9 @@ def create_app(backend: Backend) -> Litestar:
                         velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import, poses_run,
                         poses_patch, poses_delete, poses_move, poses_send, ws],
         security=[{"BearerToken": []}],
+        before_request=strict_body,
     )
-    public = Router(path="/api", route_handlers=[login])
+    public = Router(path="/api", route_handlers=[login], before_request=strict_body)
     app = Litestar(
         route_handlers=[public, api, index,
                         create_static_files_router(path="/static", directories=[STATIC_DIR],

@@ -42,9 +42,9 @@ def listen_socket(host: str, port: int) -> socket.socket:
 
 async def run(ctx: ServiceContext) -> None:
     config: HmiApiConfig = ctx.config["hmi_api"]
+    sock = listen_socket(config.host, config.port)  # first: connections queue in the backlog from now on
     backend = Backend(ctx.node, ctx.robot, config)
     app = create_app(backend)
-    sock = listen_socket(config.host, config.port)
     server = _LoopServer(uvicorn.Config(app, lifespan="off", log_config=None, log_level="warning", access_log=False,
                                         ws="websockets-sansio", ws_ping_interval=None))
     tasks = [ctx.node.spawn(backend.jog_loop(ctx.stop)), ctx.node.spawn(backend.record_loop(ctx.stop)),

@@ -90,6 +90,13 @@ def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float,
     return name, float(x), float(y), normalize_angle(float(theta))
 
 
+def check_id(pose_id: int) -> int:
+    """An id SQLite can hold (a 64-bit signed integer); anything else names no pose."""
+    if not 0 < pose_id < 2**63:
+        raise PoseNotFound(f"no pose with id {pose_id}")
+    return pose_id
+
+
 class PoseDb:
     """One SQLite connection (use it from one thread at a time)."""
 
@@ -143,6 +150,7 @@ class PoseDb:
                            updated_at=r[6]) for i, r in enumerate(rows)]
 
     def get(self, pose_id: int) -> PoseRecord:
+        check_id(pose_id)
         for p in self.list():
             if p.id == pose_id:
                 return p
@@ -163,6 +171,7 @@ class PoseDb:
 
     def update(self, pose_id: int, *, name: str | None = None, x: float | None = None, y: float | None = None,
                theta: float | None = None) -> PoseRecord:
+        check_id(pose_id)
         with self._tx() as db:
             row = db.execute("SELECT name, x_m, y_m, theta_rad FROM poses WHERE id = ?", (pose_id,)).fetchone()
             if row is None:
@@ -174,6 +183,7 @@ class PoseDb:
         return self.get(pose_id)
 
     def delete(self, pose_id: int) -> None:
+        check_id(pose_id)
         with self._tx() as db:
             if db.execute("DELETE FROM poses WHERE id = ?", (pose_id,)).rowcount == 0:
                 raise PoseNotFound(f"no pose with id {pose_id}")
