@@ -180,6 +180,19 @@ async def status(request: Request) -> dict:
     return _backend(request).status()
 
 
+@get("/robot", summary="Robot facts the HMI needs: velocity limits, footprint, home pose, jog timing")
+async def robot_info(request: Request) -> dict:
+    b = _backend(request)
+    r, c = b.robot, b.config
+    return {"robot_id": r.robot_id, "chassis_radius_m": r.chassis_radius_m,
+            "modules": [{"x": m.x_m, "y": m.y_m} for m in r.modules],
+            "limits": {"vx_min_mps": r.vx_min_mps, "vx_max_mps": r.vx_max_mps, "vy_max_mps": r.vy_max_mps,
+                       "wz_max_radps": r.wz_max_radps},
+            "laser": {"x": r.laser_mount_x_m, "y": r.laser_mount_y_m, "theta": r.laser_mount_theta_rad},
+            "home": {"x": c.home_x_m, "y": c.home_y_m, "theta": c.home_theta_rad},
+            "jog_timeout_s": c.jog_timeout_s, "ws_rate_hz": c.ws_rate_hz}
+
+
 @post("/drive/{action:str}", status_code=HTTP_200_OK, summary="enable | disable | estop | release the drive")
 async def drive(request: Request, action: str) -> ActionReply:
     b = _backend(request)
@@ -407,8 +420,8 @@ def create_app(backend: Backend) -> Litestar:
     api = Router(
         path="/api",
         guards=[require_token],
-        route_handlers=[logout, status, drive, jog, goal, goal_cancel, home, initial_pose, map_json, map_png,
-                        velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import, poses_run,
+        route_handlers=[logout, status, robot_info, drive, jog, goal, goal_cancel, home, initial_pose, map_json,
+                        map_png, velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import, poses_run,
                         poses_patch, poses_delete, poses_move, poses_send, ws],
         security=[{"BearerToken": []}],
         before_request=strict_body,
