@@ -421,8 +421,8 @@ def create_app(backend: Backend) -> Litestar:
         path="/api",
         guards=[require_token],
         route_handlers=[logout, status, robot_info, drive, jog, goal, goal_cancel, home, initial_pose, map_json,
-                        map_png, velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import, poses_run,
-                        poses_patch, poses_delete, poses_move, poses_send, ws],
+                        map_png, velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import,
+                        poses_run, poses_patch, poses_delete, poses_move, poses_send, ws],
         security=[{"BearerToken": []}],
         before_request=strict_body,
     )
