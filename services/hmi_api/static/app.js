@@ -34,11 +34,13 @@ async function api(method, path, body) {
   return data;
 }
 
+let toastTimer = null;
 function toast(text, isError = false) {
   const t = $("#toast");
   t.textContent = text;
   t.classList.toggle("bad", isError);
-  t.title = text;
+  clearTimeout(toastTimer);
+  toastTimer = setTimeout(() => { t.textContent = ""; }, isError ? 15000 : 6000);
 }
 
 // Run an action from a button: show what happened in the status bar.
