@@ -193,7 +193,7 @@ class VelocityRecorder:
     def sample(self, now_s: float, cmd: Twist2D | None, cmd_at_s: float, odom: Odometry | None) -> tuple:
         c = (cmd.vx, cmd.vy, cmd.wz) if cmd is not None and now_s - cmd_at_s <= self.cmd_hold_s else (0.0, 0.0, 0.0)
         m = (odom.twist.vx, odom.twist.vy, odom.twist.wz) if odom is not None else (math.nan,) * 3
-        row = (now_s, *c, *m)
+        row = (round(now_s, 3), *c, *m)
         self.rows.append(row)
         return row
 
