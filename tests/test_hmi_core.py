@@ -144,6 +144,9 @@ def test_view_map_pose_scan_and_nan_free_status():
     v.pose = PoseWithCovariance(covariance=[0.01, 0, 0, 0, 0.01, 0, 0, 0, math.nan])
     status = v.status(5.0, "sim", {"active": False})
     assert status["odom"]["vx"] is None and status["pose"]["std_theta_rad"] is None
+    assert status["stale"] == []
+    v.received = {"odom": 10.0, "wheels": 12.5}
+    assert v.stale(13.0) == ["odom"]
     encoded = msgspec.json.encode(status)
     assert b"NaN" not in encoded and b"Infinity" not in encoded
 

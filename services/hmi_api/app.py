@@ -193,16 +193,23 @@ async def robot_info(request: Request) -> dict:
             "jog_timeout_s": c.jog_timeout_s, "ws_rate_hz": c.ws_rate_hz}
 
 
-@post("/drive/{action:str}", status_code=HTTP_200_OK, summary="enable | disable | estop | release the drive")
-async def drive(request: Request, action: str) -> ActionReply:
-    b = _backend(request)
-    if action not in ("enable", "disable", "estop", "release"):
-        raise PoseNotFound(f"no drive action {action!r} (enable, disable, estop, release)")
-    if action == "estop":
-        reply, nav_text = await b.estop()
-        return ActionReply(ok=True, message=f"{reply.message or 'e-stopped'}; {nav_text}")
-    reply = await b.drive(action)
-    return ActionReply(ok=True, message=reply.message or action)
+def _drive_handler(action: str, summary: str):  # noqa: ANN202 - a Litestar route handler
+    async def handler(request: Request) -> ActionReply:
+        b = _backend(request)
+        if action == "estop":
+            reply, nav_text = await b.estop()
+            return ActionReply(ok=True, message=f"{reply.message or 'e-stopped'}; {nav_text}")
+        reply = await b.drive(action)
+        return ActionReply(ok=True, message=reply.message or action)
+
+    handler.__name__ = f"drive_{action}"
+    return post(f"/drive/{action}", status_code=HTTP_200_OK, summary=summary, name=f"drive_{action}")(handler)
+
+
+drive_enable = _drive_handler("enable", "Enable the drive (motors powered, commands followed)")
+drive_disable = _drive_handler("disable", "Disable the drive (motors unpowered)")
+drive_estop = _drive_handler("estop", "Emergency stop: drive latched stopped, jog ended, navigation canceled")
+drive_release = _drive_handler("release", "Release the e-stop latch (enable again to move)")
 
 
 @post("/jog", status_code=HTTP_200_OK,
@@ -420,9 +427,11 @@ def create_app(backend: Backend) -> Litestar:
     api = Router(
         path="/api",
         guards=[require_token],
-        route_handlers=[logout, status, robot_info, drive, jog, goal, goal_cancel, home, initial_pose, map_json,
-                        map_png, velocities, velocities_csv, poses_list, poses_add, poses_export, poses_import,
-                        poses_run, poses_patch, poses_delete, poses_move, poses_send, ws],
+        route_handlers=[
+            logout, status, robot_info, drive_enable, drive_disable, drive_estop, drive_release, jog, goal,
+            goal_cancel, home, initial_pose, map_json, map_png, velocities, velocities_csv, poses_list, poses_add,
+            poses_export, poses_import, poses_run, poses_patch, poses_delete, poses_move, poses_send, ws,
+        ],
         security=[{"BearerToken": []}],
         before_request=strict_body,
     )

@@ -102,6 +102,7 @@ class Backend:
         def setter(attr: str, version: str | None = None) -> Callable[[Any], None]:
             def set_it(msg: Any) -> None:
                 setattr(v, attr, msg)
+                v.received[attr] = time.monotonic()
                 if version:
                     setattr(v, version, getattr(v, version) + 1)
             return set_it
@@ -255,8 +256,8 @@ class Backend:
         active = self.jog.active(time.monotonic())
         vx, vy, wz = self.jog.current() if active else (0.0, 0.0, 0.0)
         jog = {"active": active, "vx": vx, "vy": vy, "wz": wz}
-        return self.view.status(self.node.clock.now(), "sim" if getattr(self.node.clock, "is_sim", False)
-                                else "wall", jog)
+        clock = "sim" if getattr(self.node.clock, "is_sim", False) else "wall"
+        return self.view.status(self.node.clock.now(), clock, jog, time.monotonic())
 
     def map_png(self) -> bytes | None:
         grid = self.view.grid

@@ -77,6 +77,8 @@ class RobotView:
     grid: OccupancyGrid | None = None
     cmd: Twist2D | None = None
     alive: set[str] = field(default_factory=set)
+    #: when each topic's last message arrived (wall monotonic s: link health, not robot time)
+    received: dict[str, float] = field(default_factory=dict)
     map_version: int = 0
     path_version: int = 0
     particles_version: int = 0
@@ -133,10 +135,15 @@ class RobotView:
     def path_list(path: Path | None) -> list[float | None]:
         return flat(rows(path.poses, 3)) if path is not None else []
 
-    def status(self, now_s: float, clock: str, jog: dict) -> dict:
-        """The JSON-ready status: odom, map pose, wheels, nav, health, jog, map."""
+    def stale(self, wall_now_s: float, max_age_s: float = 1.0) -> list[str]:
+        """Topics whose last message is older than ``max_age_s`` (a publisher that went quiet)."""
+        return sorted(k for k, t in self.received.items() if wall_now_s - t > max_age_s)
+
+    def status(self, now_s: float, clock: str, jog: dict, wall_now_s: float | None = None) -> dict:
+        """The JSON-ready status: odom, map pose, wheels, nav, health, jog, map, stale topics."""
         found = self.robot_pose()
         out: dict = {"stamp": finite(now_s, 3), "clock": clock, "jog": jog,
+                     "stale": self.stale(wall_now_s) if wall_now_s is not None else [],
                      "health": sorted(self.alive), "map": {"available": self.grid is not None,
                                                            "version": self.map_version}}
         if self.odom is not None:

@@ -191,6 +191,7 @@ function chip(id, text, cls) {
 }
 
 function renderStatus(s) {
+  const stale = s.stale || [];
   const o = s.odom;
   $("#st-odom").textContent = o ? `x ${fmt(o.x)} y ${fmt(o.y)} θ ${deg(o.theta)} | v ${fmt(o.vx)} ${fmt(o.vy)} ${fmt(o.wz)}` : "–";
   const p = s.pose;
@@ -201,13 +202,14 @@ function renderStatus(s) {
   const n = s.nav;
   $("#st-nav").textContent = n ? `${n.state}${n.goal_id ? ` ${n.goal_id}` : ""}${n.distance_left_m ? ` ${fmt(n.distance_left_m)} m left` : ""}`
     + (n.waypoint_count ? ` (${n.waypoint_index + 1}/${n.waypoint_count})` : "") + (n.error ? ` — ${n.error}` : "") : "–";
-  $("#st-health").textContent = s.health.join(" ") || "–";
+  $("#st-health").textContent = (s.health.join(" ") || "–") + (stale.length ? ` | silent: ${stale.join(" ")}` : "");
   if (!w) chip("#chip-drive", "drive: no data", "warn");
+  else if (stale.includes("wheels")) chip("#chip-drive", "drive: silent", "bad");
   else if (w.estopped) chip("#chip-drive", "E-STOPPED", "bad");
   else if (w.fault) chip("#chip-drive", `fault: ${w.fault}`, "bad");
   else chip("#chip-drive", w.enabled ? "drive enabled" : "drive disabled", w.enabled ? "good" : "");
   const busy = n && ["planning", "driving", "rotating", "recovering"].includes(n.state);
-  chip("#chip-nav", n ? `nav ${n.state}` : "nav: no data", !n ? "warn" : n.state === "failed" ? "bad" : busy ? "good" : "");
+  chip("#chip-nav", n ? `nav ${n.state}${stale.includes("nav") ? " (silent)" : ""}` : "nav: no data", !n ? "warn" : n.state === "failed" ? "bad" : busy ? "good" : "");
   for (const tr of $$("#pose-table tbody tr")) {
     tr.classList.toggle("active", !!(n && busy && n.goal_id && n.goal_id.startsWith(`pose${tr.dataset.id}-`)));
   }
