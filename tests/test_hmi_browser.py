@@ -75,6 +75,15 @@ def shot(page, name: str) -> Path:
     return path
 
 
+def watch_errors(page) -> list[str]:
+    """Collect uncaught JavaScript errors and console errors of ``page``."""
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(f"pageerror: {exc}"))
+    page.on("console", lambda msg: errors.append(f"console: {msg.text}") if msg.type == "error"
+            and "status of 4" not in msg.text and "status of 503" not in msg.text else None)
+    return errors
+
+
 def login(page, url: str, password: str) -> None:
     page.goto(url + "/#control")
     page.fill("#login-password", "wrong")
@@ -172,6 +181,7 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
         sub = session.declare_subscriber(stack.keys("cmd_vel"), on_cmd)
         with RobotMessages(session, stack.keys):
             page = browser.new_page(viewport=VIEWPORT, accept_downloads=True)
+            errors = watch_errors(page)
             page.goto(url + "/")
             page.wait_for_selector("#login-password")
             shot(page, "00-login")
@@ -251,6 +261,7 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
             lines = csv_path.read_text().splitlines()
             assert lines[0].startswith("t_s,cmd_vx_mps") and len(lines) > 20
             shot(page, "04-curves")
+            assert not errors, errors
             page.close()
         sub.undeclare()
     finally:
@@ -266,6 +277,7 @@ def test_hmi_drives_the_simulated_robot(browser, tmp_path):
         wait_http(stack)
         url = base_url(stack)
         page = browser.new_page(viewport=VIEWPORT)
+        errors = watch_errors(page)
         login(page, url, password_of(stack))
         page.wait_for_function("window.zagv.state.status && window.zagv.state.status.pose !== null",
                                timeout=60_000)
@@ -311,6 +323,7 @@ def test_hmi_drives_the_simulated_robot(browser, tmp_path):
         shot(page, "sim-02-map")
         page.click("button[data-tab=curves]")
         shot(page, "sim-04-curves")
+        assert not errors, errors
         page.close()
     finally:
         stack.stop()
