@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import logging
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -19,7 +20,13 @@ from typing import Annotated, Any, Literal
 import msgspec
 from litestar import Litestar, MediaType, Request, Response, Router, delete, get, patch, post, websocket
 from litestar.connection import ASGIConnection, WebSocket
-from litestar.exceptions import ClientException, NotAuthorizedException, ValidationException, WebSocketDisconnect
+from litestar.exceptions import (
+    ClientException,
+    HTTPException,
+    NotAuthorizedException,
+    ValidationException,
+    WebSocketDisconnect,
+)
 from litestar.handlers.base import BaseRouteHandler
 from litestar.openapi import OpenAPIConfig
 from litestar.openapi.spec import Components, SecurityScheme
@@ -30,6 +37,7 @@ from services.hmi_api.backend import Backend, RobotRejected, RobotUnavailable
 from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseNotFound, PoseRecord
 
 STATIC_DIR = Path(__file__).parent / "static"
+log = logging.getLogger("zagv.hmi_api")
 
 # Bounds keep every number finite (NaN and inf fail them -> 422); jog values are then clamped to Table 2.
 Speed = Annotated[float, msgspec.Meta(ge=-1e3, le=1e3, description="m/s or rad/s; clamped to the robot's limits")]
@@ -402,6 +410,16 @@ def _on_client_error(_: Request, exc: ClientException) -> Response[dict]:
     return _error(status, str(exc.detail), exc.extra, dict(exc.headers or {}))
 
 
+def _on_http(_: Request, exc: HTTPException) -> Response[dict]:
+    return _error(exc.status_code, str(exc.detail), exc.extra, dict(exc.headers or {}))
+
+
+def _on_internal(request: Request, exc: Exception) -> Response[dict]:
+    """A bug: logged with its traceback; the client gets a 500 without internals."""
+    log.error("%s %s failed", request.method, request.url.path, exc_info=exc)
+    return _error(500, f"internal error ({type(exc).__name__}); see the hmi_api log")
+
+
 def _on_not_found(_: Request, exc: PoseNotFound) -> Response[dict]:
     return _error(404, str(exc))
 
@@ -443,6 +461,8 @@ def create_app(backend: Backend) -> Litestar:
         exception_handlers={
             ValidationException: _on_validation,
             ClientException: _on_client_error,
+            HTTPException: _on_http,
+            Exception: _on_internal,
             PoseNotFound: _on_not_found,
             PoseDbError: _on_db_error,
             RobotRejected: _on_rejected,
