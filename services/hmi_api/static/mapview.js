@@ -78,13 +78,32 @@ export class MapView {
   bindPointer() {
     const c = this.canvas;
     const local = (ev) => { const r = c.getBoundingClientRect(); return { x: ev.clientX - r.left, y: ev.clientY - r.top }; };
+    const touches = new Map();  // pointerId -> position, for two-finger pinch zoom on tablets
+    let pinch = null;
     c.addEventListener("pointerdown", (ev) => {
       c.setPointerCapture(ev.pointerId);
       const p = local(ev);
+      touches.set(ev.pointerId, p);
+      if (touches.size === 2) {
+        const [a, b] = [...touches.values()];
+        pinch = { dist: Math.hypot(a.x - b.x, a.y - b.y), scale: this.view.scale };
+        this.drag = null;
+        return;
+      }
       this.drag = { tool: this.tool, start: p, now: p, view: { ...this.view } };
     });
+    const lift = (ev) => { touches.delete(ev.pointerId); if (touches.size < 2) pinch = null; };
+    c.addEventListener("pointerup", lift);
+    c.addEventListener("pointercancel", lift);
     c.addEventListener("pointermove", (ev) => {
       const p = local(ev);
+      if (touches.has(ev.pointerId)) touches.set(ev.pointerId, p);
+      if (pinch && touches.size === 2) {
+        const [a, b] = [...touches.values()];
+        const k = (pinch.scale * Math.hypot(a.x - b.x, a.y - b.y) / Math.max(1, pinch.dist)) / this.view.scale;
+        this.zoom(k, (a.x + b.x) / 2, (a.y + b.y) / 2);
+        return;
+      }
       const w = this.toWorld(p.x, p.y);
       if (this.opts.onCursor) this.opts.onCursor(w.x, w.y);
       if (!this.drag) return;
