@@ -11,6 +11,8 @@ import base64
 import io
 import json
 import math
+import subprocess
+import sys
 import threading
 import time
 
@@ -22,7 +24,8 @@ from websockets.sync.client import connect as ws_connect
 
 from proto import codec
 from proto.messages import LaserScan, NavStatus, OccupancyGrid, Odometry, Pose2D, PoseWithCovariance, Twist2D
-from tests.support.hmi import HmiClient, base_url, hmi_stack, password_of, wait_http
+from services.hmi_api import auth
+from tests.support.hmi import HmiClient, base_url, first_run_passwords, hmi_stack, password_of, wait_http
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
@@ -243,3 +246,24 @@ def test_pose_database_crud_order_export_import(hmi):
                                                           {"name": "", "x": 0, "y": 0}]})
     assert r.status_code == 422
     assert len(client.get("/api/poses").json()) == 3
+
+
+def test_configured_password_hash_and_bad_hash(tmp_path):
+    good = auth.hash_password("configured secret")
+    stack = hmi_stack(tmp_path / "good", sets=[f'hmi_api.password_hash="{good}"'])
+    (tmp_path / "good").mkdir()
+    stack.start()
+    try:
+        wait_http(stack)
+        with HmiClient(base_url(stack)) as c:
+            assert c.post("/api/login", json={"password": "wrong"}).status_code == 401
+            c.login("configured secret")
+            assert c.get("/api/status").status_code == 200
+        assert not first_run_passwords(stack)
+        assert not (tmp_path / "good" / auth.FIRST_RUN_FILE).exists()
+    finally:
+        stack.stop()
+    result = subprocess.run([sys.executable, "-m", "services.hmi_api", "--check-config",
+                             "--set", 'hmi_api.password_hash="plaintext"'], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 2 and "password_hash must look like scrypt" in result.stderr

@@ -31,6 +31,10 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
     query_timeout_s: float = 3.0
 
     def __post_init__(self) -> None:
+        if self.password_hash:
+            from services.hmi_api.auth import check_hash_format
+
+            check_hash_format(self.password_hash)
         if not 0 < self.port < 65536:
             raise ValueError(f"hmi_api.port must be in 1..65535, got {self.port}")
         for name in ("jog_timeout_s", "jog_rate_hz", "ws_rate_hz", "velocity_record_hz", "token_ttl_s",
