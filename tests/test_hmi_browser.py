@@ -261,6 +261,10 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
             lines = csv_path.read_text().splitlines()
             assert lines[0].startswith("t_s,cmd_vx_mps") and len(lines) > 20
             shot(page, "04-curves")
+            page.set_viewport_size({"width": 768, "height": 1024})  # the tablet turned upright
+            page.click("button[data-tab=control]")
+            page.wait_for_timeout(300)
+            shot(page, "05-control-portrait")
             assert not errors, errors
             page.close()
         sub.undeclare()
