@@ -14,6 +14,7 @@ import asyncio
 import base64
 import logging
 import math
+import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -245,7 +246,7 @@ async def goal_cancel(request: Request) -> ActionReply:
 async def home(request: Request) -> GoalAccepted:
     b = _backend(request)
     c = b.config
-    r = await b.goal(c.home_x_m, c.home_y_m, c.home_theta_rad, "home")
+    r = await b.goal(c.home_x_m, c.home_y_m, c.home_theta_rad, f"home-{uuid.uuid4().hex[:6]}")
     return GoalAccepted(accepted=True, goal_id=r.goal_id)
 
 
