@@ -40,14 +40,15 @@ MOTION_ENDPOINTS = [
 @pytest.fixture(scope="module")
 def hmi(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("hmi")
-    stack = hmi_stack(run_dir, sets=["hmi_api.query_timeout_s=0.5"]).start()
-    wait_http(stack)
-    client = HmiClient(base_url(stack))
-    client.login(password_of(stack))
-    session = stack.session()
-    yield stack, client, session
-    client.close()
-    stack.stop()
+    stack = hmi_stack(run_dir, sets=["hmi_api.query_timeout_s=0.5"])
+    try:
+        stack.start()
+        wait_http(stack)
+        with HmiClient(base_url(stack)) as client:
+            client.login(password_of(stack))
+            yield stack, client, stack.session()
+    finally:
+        stack.stop()
 
 
 def put(session, stack, name, msg):
@@ -252,8 +253,8 @@ def test_configured_password_hash_and_bad_hash(tmp_path):
     good = auth.hash_password("configured secret")
     stack = hmi_stack(tmp_path / "good", sets=[f'hmi_api.password_hash="{good}"'])
     (tmp_path / "good").mkdir()
-    stack.start()
     try:
+        stack.start()
         wait_http(stack)
         with HmiClient(base_url(stack)) as c:
             assert c.post("/api/login", json={"password": "wrong"}).status_code == 401

@@ -166,8 +166,9 @@ class RobotMessages:
 
 
 def test_hmi_pages_against_hmi_api(browser, tmp_path):
-    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.5"]).start()
+    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.5"])
     try:
+        stack.start()
         wait_http(stack)
         url = base_url(stack)
         session = stack.session()
@@ -276,8 +277,9 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
 @pytest.mark.skipif(not full_stack_available(),
                     reason=f"needs the simulated stack; missing services: {', '.join(missing_services())}")
 def test_hmi_drives_the_simulated_robot(browser, tmp_path):
-    stack = hmi_stack(tmp_path, full=True).start(ready_timeout_s=120)
+    stack = hmi_stack(tmp_path, full=True)
     try:
+        stack.start(ready_timeout_s=120)
         wait_http(stack)
         url = base_url(stack)
         page = browser.new_page(viewport=VIEWPORT)

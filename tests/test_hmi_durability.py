@@ -16,8 +16,9 @@ pytestmark = pytest.mark.integration
 
 
 def test_kill9_loses_no_acknowledged_pose(tmp_path):
-    stack = hmi_stack(tmp_path).start()
+    stack = hmi_stack(tmp_path)
     try:
+        stack.start()
         wait_http(stack)
         password = password_of(stack)
         acked: dict[int, tuple[str, float]] = {}  # id -> (name, x) as acknowledged

@@ -50,8 +50,9 @@ def fuzz_operation(op, mode, url, token, statuses, problems):  # noqa: ANN001, A
 
 
 def test_fuzz_openapi_finds_no_server_error(tmp_path):
-    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.1"]).start()
+    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.1"])
     try:
+        stack.start()
         wait_http(stack)
         url = base_url(stack)
         with HmiClient(url) as client:

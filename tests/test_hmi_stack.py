@@ -31,15 +31,17 @@ pytestmark = [
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory):
-    stack = hmi_stack(tmp_path_factory.mktemp("hmi_stack"), full=True).start(ready_timeout_s=120)
-    wait_http(stack)
-    client = HmiClient(base_url(stack))
-    client.login(password_of(stack))
-    wait_for_sync(lambda: client.get("/api/status").json()["pose"] is not None, timeout_s=60,
-                  message="no map pose from localization")
-    yield stack, client
-    client.close()
-    stack.stop()
+    stack = hmi_stack(tmp_path_factory.mktemp("hmi_stack"), full=True)
+    try:
+        stack.start(ready_timeout_s=120)
+        wait_http(stack)
+        with HmiClient(base_url(stack)) as client:
+            client.login(password_of(stack))
+            wait_for_sync(lambda: client.get("/api/status").json()["pose"] is not None, timeout_s=60,
+                          message="no map pose from localization")
+            yield stack, client
+    finally:
+        stack.stop()
 
 
 def status(client):

@@ -205,10 +205,7 @@ async def robot_info(request: Request) -> dict:
 def _drive_handler(action: str, summary: str):  # noqa: ANN202 - a Litestar route handler
     async def handler(request: Request) -> ActionReply:
         b = _backend(request)
-        if action == "estop":
-            reply, nav_text = await b.estop()
-            return ActionReply(ok=True, message=f"{reply.message or 'e-stopped'}; {nav_text}")
-        reply = await b.drive(action)
+        reply = await (b.estop() if action == "estop" else b.drive(action))
         return ActionReply(ok=True, message=reply.message or action)
 
     handler.__name__ = f"drive_{action}"

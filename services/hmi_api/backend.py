@@ -197,16 +197,12 @@ class Backend:
             self.jog.stop()
         return await self.reply_query(f"drive/{action}")
 
-    async def estop(self) -> tuple[Reply, str]:
-        """E-stop the drive, end any jog and cancel navigation (best effort, reported)."""
+    async def estop(self) -> Reply:
+        """E-stop the drive and end any jog; navigation is canceled in the background (nav may be absent, and an
+        e-stop answer must not wait for it)."""
         self.jog.stop()
-        reply = await self.reply_query("drive/estop")
-        try:
-            nav = await self.query("nav/cancel", CancelRequest())
-            nav_text = nav.message or ("navigation canceled" if nav.ok else "nav did not cancel")
-        except RobotUnavailable as exc:
-            nav_text = str(exc)
-        return reply, nav_text
+        self.node.spawn(self._cancel_quietly())
+        return await self.reply_query("drive/estop")
 
     def jog_command(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
         twist = self.robot.clamp_twist(vx, vy, wz)
@@ -221,7 +217,7 @@ class Backend:
         try:
             await self.query("nav/cancel", CancelRequest())
         except RobotUnavailable as exc:
-            log.warning("jog could not cancel navigation: %s", exc)
+            log.warning("could not cancel navigation: %s", exc)
 
     async def goal(self, x: float, y: float, theta: float, goal_id: str = "") -> GoalReply:
         reply: GoalReply = await self.query("nav/goal", GoalRequest(pose=Pose2D(x=x, y=y, theta=theta), id=goal_id))
