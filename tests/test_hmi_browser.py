@@ -285,7 +285,8 @@ def test_hmi_drives_the_simulated_robot(browser, tmp_path):
         page = browser.new_page(viewport=VIEWPORT)
         errors = watch_errors(page)
         login(page, url, password_of(stack))
-        page.wait_for_function("window.zagv.state.status && window.zagv.state.status.pose !== null",
+        page.wait_for_function("window.zagv.state.status && window.zagv.state.status.pose !== null"
+                               " && window.zagv.state.status.wheels && window.zagv.state.status.wheels.link_ok",
                                timeout=60_000)
         page.click("#btn-enable")
         page.wait_for_selector("#chip-drive:has-text('drive enabled')", timeout=30_000)

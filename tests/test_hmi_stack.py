@@ -39,6 +39,8 @@ def robot(tmp_path_factory):
             client.login(password_of(stack))
             wait_for_sync(lambda: client.get("/api/status").json()["pose"] is not None, timeout_s=60,
                           message="no map pose from localization")
+            wait_for_sync(lambda: (client.get("/api/status").json()["wheels"] or {}).get("link_ok"), timeout_s=60,
+                          message="drive never reached the controllers")
             yield stack, client
     finally:
         stack.stop()
