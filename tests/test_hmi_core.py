@@ -145,7 +145,7 @@ def test_view_map_pose_scan_and_nan_free_status():
     status = v.status(5.0, "sim", {"active": False})
     assert status["odom"]["vx"] is None and status["pose"]["std_theta_rad"] is None
     assert status["stale"] == []
-    v.received = {"odom": 10.0, "wheels": 12.5}
+    v.received = {"odom": 10.0, "wheels": 12.5, "pose": 1.0}  # pose pauses while the robot stands still
     assert v.stale(13.0) == ["odom"]
     encoded = msgspec.json.encode(status)
     assert b"NaN" not in encoded and b"Infinity" not in encoded

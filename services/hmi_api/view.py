@@ -135,9 +135,12 @@ class RobotView:
     def path_list(path: Path | None) -> list[float | None]:
         return flat(rows(path.poses, 3)) if path is not None else []
 
+    #: topics published continuously; the others (pose, paths, particles) legitimately pause
+    STREAMING = frozenset({"odom", "wheels", "scan", "nav"})
+
     def stale(self, wall_now_s: float, max_age_s: float = 1.0) -> list[str]:
-        """Topics whose last message is older than ``max_age_s`` (a publisher that went quiet)."""
-        return sorted(k for k, t in self.received.items() if wall_now_s - t > max_age_s)
+        """Streaming topics whose last message is older than ``max_age_s`` (a publisher that went quiet)."""
+        return sorted(k for k, t in self.received.items() if k in self.STREAMING and wall_now_s - t > max_age_s)
 
     def status(self, now_s: float, clock: str, jog: dict, wall_now_s: float | None = None) -> dict:
         """The JSON-ready status: odom, map pose, wheels, nav, health, jog, map, stale topics."""
