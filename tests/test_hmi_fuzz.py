@@ -39,7 +39,7 @@ def reject_constant(name: str) -> None:
 def fuzz_operation(op, mode, url, token, statuses, problems, allow_unavailable):  # noqa: ANN001, ANN201
     """A hypothesis test over one operation: call it, count the status, record any server error or NaN."""
 
-    @settings(max_examples=EXAMPLES.get(op.path, 15), deadline=None, database=None, derandomize=True,
+    @settings(max_examples=EXAMPLES.get(op.path, 12), deadline=None, database=None, derandomize=True,
               suppress_health_check=list(HealthCheck))
     @given(case=op.as_strategy(generation_mode=mode))
     def run(case):  # noqa: ANN001, ANN202
