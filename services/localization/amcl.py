@@ -3,12 +3,15 @@
 - Motion: Nav2's omni-corrected odometry model (alpha1..alpha5), applied to every particle per filter update.
 - Sensor: the likelihood-field model. Each map cell holds ``pz^3`` with ``pz = z_hit exp(-d^2 / (2 sigma_hit^2)) +
   z_rand / range_max`` (``d`` the distance to the nearest occupied cell, capped at ``laser_likelihood_max_dist``);
-  a particle's weight is multiplied by ``1 + sum over beams of pz^3`` (amcl's sum-of-cubes heuristic). Beams are
+  a particle's weight is multiplied by ``1 + sum over beams of pz^3`` (amcl's sum-of-cubes heuristic), or with
+  ``laser_model_type = "likelihood_field_prob"`` by the product of the beams' ``pz`` (no beam skipping). Beams are
   subsampled with Nav2's step ``(n - 1) // (max_beams - 1)``; endpoints beyond the map use the capped distance.
 - Resampling: low-variance (systematic) resampling every ``resample_interval`` sensor updates, KLD-sampling the
   population between ``min_particles`` and ``max_particles`` (bins 0.5 m x 0.5 m x 10 deg, ``pf_err``, ``pf_z``),
   and random particles over free space with probability ``max(0, 1 - w_fast / w_slow)`` (``recovery_alpha_slow``,
-  ``recovery_alpha_fast``; both 0 disables it).
+  ``recovery_alpha_fast``; 0 disables it). w_slow/w_fast average the per-beam likelihood; with
+  ``recovery_sensor_reset`` the random particles are drawn from many uniform candidates in proportion to their
+  likelihood for the current scan (sensor-resetting localization, Lenser & Veloso 2000).
 - Estimate: the heaviest cluster of adjacent occupied bins; its weighted mean and covariance.
 - Gates: a filter update needs ``update_min_d`` (per axis, odom frame) or ``update_min_a`` of odometry motion.
 
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import msgspec
 import numpy as np
@@ -45,9 +49,10 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     update_min_a: float = 0.1
     resample_interval: int = 1
     max_beams: int = 60
+    laser_model_type: Literal["likelihood_field", "likelihood_field_prob"] = "likelihood_field_prob"
     z_hit: float = 0.9
     z_rand: float = 0.1
-    sigma_hit: float = 0.05
+    sigma_hit: float = 0.1
     laser_likelihood_max_dist: float = 2.0
     laser_min_range: float = -1.0
     laser_max_range: float = -1.0
@@ -57,6 +62,12 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     alpha4: float = 0.2
     alpha5: float = 0.2
     random_seed: int = -1
+    #: particles for global localization (Nav2 uses max_particles); more hypotheses for the first scan help a
+    #: large or self-similar map, and cost only that one update (the sensor model runs in max_particles chunks)
+    global_localization_particles: int = 20000
+    #: recovery particles are drawn from that many uniform candidates weighted by the current scan (sensor
+    #: resetting) rather than uniformly, so that a kidnapped robot is found in a large map
+    recovery_sensor_reset: bool = True
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -114,7 +125,8 @@ def kld_limit(k: int, pf_err: float, pf_z: float, min_particles: int, max_partic
 
 
 class LikelihoodField:
-    """Per-cell ``pz^3`` of the likelihood-field model, padded by one cell that holds the beyond-the-map value."""
+    """Per-cell ``pz^3`` (``likelihood_field``) or ``log pz`` (``likelihood_field_prob``), padded by one cell that
+    holds the beyond-the-map value."""
 
     def __init__(self, grid: OccupancyMap, params: AmclParams) -> None:
         self.grid = grid
@@ -145,8 +157,12 @@ class LikelihoodField:
         rand = p.z_rand / range_max if range_max > 0 else 0.0
         pz = p.z_hit * np.exp(-(self.distance_m ** 2) / (2.0 * p.sigma_hit ** 2)) + rand
         outside = p.z_hit * math.exp(-(self.max_dist ** 2) / (2.0 * p.sigma_hit ** 2)) + rand
-        self.table.fill(outside ** 3)
-        self.table[1:-1, 1:-1] = pz ** 3
+        if p.laser_model_type == "likelihood_field_prob":
+            self.table.fill(math.log(max(outside, 1e-300)))
+            self.table[1:-1, 1:-1] = np.log(np.maximum(pz, 1e-300))
+        else:
+            self.table.fill(outside ** 3)
+            self.table[1:-1, 1:-1] = pz ** 3
         self._range_max = range_max
 
 
@@ -174,18 +190,20 @@ class ParticleFilter:
             raise ValueError("the map has no free cell to place particles in")
         self._free_cells = (free_cols.astype(np.float64), free_rows.astype(np.float64))
         m = params.max_particles
-        self.poses = np.zeros((m, 3))
-        self._poses_next = np.zeros((m, 3))
-        self.weights = np.full(m, 1.0 / m)
+        capacity = max(m, params.global_localization_particles)
+        self.poses = np.zeros((capacity, 3))
+        self._poses_next = np.zeros((capacity, 3))
+        self.weights = np.full(capacity, 1.0 / m)
         self.n = m
         self.w_slow = 0.0
         self.w_fast = 0.0
         self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
                                     for k in range(m + 1)], dtype=np.int64)
         self._counts = np.arange(1, m + 1)
-        self._noise = np.empty((m, 3))
-        self._percol = np.empty((7, m))
+        self._noise = np.empty((capacity, 3))
+        self._percol = np.empty((7, capacity))
         self._beam_capacity = 0
+        self._last_beams: tuple[np.ndarray, np.ndarray, tuple[float, float, float]] | None = None
         self._ensure_beam_buffers(params.max_beams + 1)
         self._random_poses(self.poses)
 
@@ -237,8 +255,9 @@ class ParticleFilter:
         self.w_slow = self.w_fast = 0.0
 
     def init_uniform(self) -> None:
-        """Global localization: ``max_particles`` particles uniform over free space."""
-        n = self.params.max_particles
+        """Global localization: ``global_localization_particles`` (at least ``max_particles``) particles uniform over
+        free space; the next resampling brings the population back within [min_particles, max_particles]."""
+        n = max(self.params.max_particles, self.params.global_localization_particles)
         self._random_poses(self.poses[:n])
         self._set_uniform_weights(n)
         self.w_slow = self.w_fast = 0.0
@@ -285,7 +304,7 @@ class ParticleFilter:
         """Weight particles by the likelihood field for beams (range m, bearing rad in the laser frame).
 
         ``ranges``/``bearings`` must already be subsampled and valid (finite, inside the range limits).
-        Returns the weighted mean likelihood (the w_avg of the recovery filters).
+        Returns the per-beam mean likelihood that feeds the recovery filters (w_slow, w_fast).
         """
         p = self.params
         n = self.n
@@ -293,20 +312,65 @@ class ParticleFilter:
         if b == 0:
             return 0.0
         self._ensure_beam_buffers(b)
-        field = self.field
-        field.prepare(range_max)
+        self.field.prepare(range_max)
+        res = self.grid.resolution
+        rc = ranges * np.cos(bearings) / res
+        rs = ranges * np.sin(bearings) / res
+        self._last_beams = (rc, rs, mount)
+        like = self._percol[5, :n]
+        self._likelihood_sums(self.poses, n, like)
+        if p.laser_model_type == "likelihood_field_prob":
+            # product of beam likelihoods, exp(sum log pz), shifted by its maximum to stay in range
+            log_max = float(like.max())
+            like -= log_max
+            np.exp(like, out=like)
+        else:
+            like += 1.0
+        w = self.weights[:n]
+        w *= like
+        total = float(w.sum())
+        if not math.isfinite(total) or total <= 0.0:
+            self._set_uniform_weights(n)
+            return 0.0
+        w /= total
+        # w_avg per beam, so that the recovery filters compare scans with different numbers of valid returns:
+        # the weighted mean of pz^3 per beam, or the per-beam geometric mean of pz for the product model
+        if p.laser_model_type == "likelihood_field_prob":
+            w_avg = math.exp((log_max + math.log(total)) / b)
+        else:
+            w_avg = (total - 1.0) / b
+        if self.w_slow == 0.0:
+            self.w_slow = self.w_fast = w_avg
+        else:
+            self.w_slow += p.recovery_alpha_slow * (w_avg - self.w_slow)
+            self.w_fast += p.recovery_alpha_fast * (w_avg - self.w_fast)
+        return w_avg
+
+    def _likelihood_sums(self, poses: np.ndarray, n: int, out: np.ndarray) -> None:
+        """Per-pose sums over the last scan's beams for poses[:n], in chunks of max_particles (buffer size)."""
+        rc, rs, mount = self._last_beams
+        chunk = self.params.max_particles
+        for start in range(0, n, chunk):
+            stop = min(n, start + chunk)
+            self._beam_sums(poses, start, stop, rc, rs, mount, out[start:stop])
+
+    def _beam_sums(self, poses: np.ndarray, start: int, stop: int, rc: np.ndarray, rs: np.ndarray,
+                   mount: tuple[float, float, float], out: np.ndarray) -> None:
+        """Sum of the table values at the beam endpoints of poses start..stop-1 (beams in grid cells)."""
         grid = self.grid
         res = grid.resolution
         ox, oy, oyaw = grid.origin
         c0, s0 = math.cos(oyaw), math.sin(oyaw)
         mx, my, mth = mount
+        n = stop - start
+        b = rc.size
         # laser pose of each particle, in grid cells (+1 for the padding border)
-        th = self.poses[:n, 2]
+        th = poses[start:stop, 2]
         cth, sth = self._percol[0, :n], self._percol[1, :n]
         np.cos(th, out=cth)
         np.sin(th, out=sth)
-        lx = self.poses[:n, 0] + cth * mx - sth * my - ox
-        ly = self.poses[:n, 1] + sth * mx + cth * my - oy
+        lx = poses[start:stop, 0] + cth * mx - sth * my - ox
+        ly = poses[start:stop, 1] + sth * mx + cth * my - oy
         gx = (c0 * lx + s0 * ly) / res + 1.0
         gy = (-s0 * lx + c0 * ly) / res + 1.0
         ga = self._percol[2, :n]
@@ -314,8 +378,6 @@ class ParticleFilter:
         cga, sga = self._percol[3, :n], self._percol[4, :n]
         np.cos(ga, out=cga)
         np.sin(ga, out=sga)
-        rc = ranges * np.cos(bearings) / res
-        rs = ranges * np.sin(bearings) / res
         size = n * b
         bx = self._bx[:size].reshape(n, b)
         by = self._by[:size].reshape(n, b)
@@ -339,24 +401,8 @@ class ParticleFilter:
         np.copyto(iy, by, casting="unsafe")
         iy *= width2
         iy += ix
-        np.take(field.flat, iy, out=vals)
-        like = self._percol[5, :n]
-        np.sum(vals, axis=1, out=like)
-        like += 1.0
-        w = self.weights[:n]
-        w *= like
-        total = float(w.sum())
-        if not math.isfinite(total) or total <= 0.0:
-            self._set_uniform_weights(n)
-            return 0.0
-        w /= total
-        w_avg = total  # incoming weights sum to 1: the weighted mean of the likelihoods
-        if self.w_slow == 0.0:
-            self.w_slow = self.w_fast = w_avg
-        else:
-            self.w_slow += p.recovery_alpha_slow * (w_avg - self.w_slow)
-            self.w_fast += p.recovery_alpha_fast * (w_avg - self.w_fast)
-        return w_avg
+        np.take(self.field.flat, iy, out=vals)
+        np.sum(vals, axis=1, out=out)
 
     # ------------------------------------------------------------------ resampling
 
@@ -365,6 +411,27 @@ class ParticleFilter:
         if self.w_slow <= 0.0 or self.params.recovery_alpha_slow <= 0.0 or self.params.recovery_alpha_fast <= 0.0:
             return 0.0
         return max(0.0, 1.0 - self.w_fast / self.w_slow)
+
+    def _recovery_poses(self, k: int) -> np.ndarray:
+        """``k`` random poses for recovery: uniform over free space, or (``recovery_sensor_reset``) drawn from
+        ``global_localization_particles`` uniform candidates in proportion to their likelihood for the last scan."""
+        p = self.params
+        candidates = max(k, p.global_localization_particles)
+        if not p.recovery_sensor_reset or self._last_beams is None or candidates <= k:
+            out = np.empty((k, 3))
+            self._random_poses(out)
+            return out
+        poses = np.empty((candidates, 3))
+        self._random_poses(poses)
+        sums = np.empty(candidates)
+        self._likelihood_sums(poses, candidates, sums)
+        if p.laser_model_type == "likelihood_field_prob":
+            weights = np.exp(sums - sums.max())
+        else:
+            weights = sums + 1.0
+        cumulative = np.cumsum(weights)
+        picks = np.searchsorted(cumulative, self.rng.random(k) * cumulative[-1], side="right")
+        return poses[np.minimum(picks, candidates - 1)]
 
     def resample(self) -> int:
         """Low-variance resampling with KLD-sampled population size and random injection; returns the new size."""
@@ -377,15 +444,13 @@ class ParticleFilter:
         picks = np.searchsorted(cumulative, positions, side="right")
         np.minimum(picks, n - 1, out=picks)
         self.rng.shuffle(picks)  # KLD takes a prefix: it must be a random subset, not the lowest indices
-        new = self._poses_next
+        new = self._poses_next[:m]
         np.take(self.poses, picks, axis=0, out=new)
         w_diff = self.injection_probability()
         if w_diff > 0.0:
             inject = np.nonzero(self.rng.random(m) < w_diff)[0]
             if inject.size:
-                randoms = np.empty((inject.size, 3))
-                self._random_poses(randoms)
-                new[inject] = randoms
+                new[inject] = self._recovery_poses(inject.size)
             self.w_slow = self.w_fast = 0.0
         keys = self._bin_keys(new)
         _, first = np.unique(keys, return_index=True)
@@ -395,7 +460,7 @@ class ParticleFilter:
         done = np.nonzero(self._counts > self._kld_table[occupied_bins])[0]
         count = int(done[0]) + 1 if done.size else m
         count = min(max(count, p.min_particles), m)
-        self.poses, self._poses_next = new, self.poses
+        self.poses, self._poses_next = self._poses_next, self.poses
         self._set_uniform_weights(count)
         return count
 
@@ -549,9 +614,10 @@ class Amcl:
         self.force_update = False
         self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
         self.resample_count += 1
+        # the weighted set carries this scan's evidence; resampling only adds noise to its mean
+        self.estimate = self.pf.estimate()
         if self.resample_count % self.params.resample_interval == 0:
             self.pf.resample()
-        self.estimate = self.pf.estimate()
         self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
         self.updates += 1
         return True

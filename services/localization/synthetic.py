@@ -1,6 +1,6 @@
-"""A synthetic corridor for localization tests: the world file rendered to a grid, an exact laser, a driven route.
+"""Synthetic runs for AMCL tests and benchmarks: a rectangle world rendered to a grid, an exact laser, a route.
 
-The world (``worlds/corridor.toml`` of the shared data) is solid except its free rectangles, with obstacle
+A world file (like the corridor world, ``corridor.toml``) is solid except its free rectangles, with obstacle
 rectangles added back. ``render`` rasterises it like a map_server map; ``Laser`` casts rays against the exact
 rectangles (LMS111-like: 270 deg at 0.5 deg, 20 m, Gaussian range noise); ``route`` walks a piecewise-linear path
 through poses in small steps; ``Odometry`` integrates the true body motion with scale errors and noise.
@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from services.localization.amcl import Amcl, AmclParams, compose, select_beams, wrap_angle
 from services.localization.map_io import OccupancyMap
 
 #: Table 3 goals joined by via points that keep the straight legs inside free space
@@ -115,6 +116,10 @@ class Odometry:
         self.noise_frac = noise_frac
         self.rng = rng or np.random.default_rng(11)
 
+    def teleported(self, true_pose: tuple[float, float, float]) -> None:
+        """The robot was moved without its wheels turning (kidnapping): odometry does not see the jump."""
+        self._last_true = true_pose
+
     def step(self, true_pose: tuple[float, float, float]) -> tuple[float, float, float]:
         x0, y0, t0 = self._last_true
         x1, y1, t1 = true_pose
@@ -129,3 +134,70 @@ class Odometry:
         self.pose = (ox + c * bx - s * by, oy + s * bx + c * by, ot + bt)
         self._last_true = true_pose
         return self.pose
+
+
+def find_world(name: str = "corridor") -> Path | None:
+    """The world file ``<name>.toml``: the simulator's package data, else the development data folder."""
+    import os
+
+    root = Path(__file__).resolve().parents[2]
+    shared = Path(os.environ.get("ZAGV_SHARED", root.parent / "shared"))
+    for candidate in (root / "services" / "sim" / "worlds" / f"{name}.toml", shared / "worlds" / f"{name}.toml"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+@dataclass
+class RunResult:
+    """Errors of the published map pose (map_odom ∘ odom) against the truth at every scan of a run."""
+
+    errors_xy_m: np.ndarray
+    errors_theta_rad: np.ndarray
+    distance_m: np.ndarray  # distance travelled before each scan
+    updates: int
+
+    @property
+    def rms_xy_m(self) -> float:
+        return float(np.sqrt(np.mean(self.errors_xy_m ** 2)))
+
+    @property
+    def rms_theta_rad(self) -> float:
+        return float(np.sqrt(np.mean(self.errors_theta_rad ** 2)))
+
+    def settled_after_m(self, threshold_m: float) -> float | None:
+        """Distance after which the error stays below ``threshold_m`` to the end (None: it never settles)."""
+        above = np.nonzero(self.errors_xy_m >= threshold_m)[0]
+        if above.size == 0:
+            return float(self.distance_m[0])
+        if above[-1] + 1 >= self.errors_xy_m.size:
+            return None
+        return float(self.distance_m[above[-1] + 1])
+
+
+MOUNT = (0.45, 0.0, 0.0)
+
+
+def drive(amcl: Amcl, world: World, truth: list[tuple[float, float, float]], *, seed: int = 1,
+          mount: tuple[float, float, float] = MOUNT, odometry: Odometry | None = None) -> RunResult:
+    """Feed AMCL one scan per true pose (odometry from the true increments) and record its errors."""
+    laser = Laser(world, rng=np.random.default_rng(seed + 10))
+    odom = odometry or Odometry(truth[0], rng=np.random.default_rng(seed + 20))
+    params: AmclParams = amcl.params
+    exy, eth, dist = [], [], []
+    travelled = 0.0
+    last = truth[0]
+    for true in truth:
+        travelled += math.hypot(true[0] - last[0], true[1] - last[1])
+        last = true
+        o = odom.step(true)
+        beams = select_beams(laser.scan(true, mount), laser.angle_min, laser.angle_increment, laser.range_min,
+                             laser.range_max, params)
+        amcl.process(o, beams, mount)
+        if amcl.map_odom is None:
+            continue
+        est = compose(amcl.map_odom, o)
+        exy.append(math.hypot(est[0] - true[0], est[1] - true[1]))
+        eth.append(abs(float(wrap_angle(est[2] - true[2]))))
+        dist.append(travelled)
+    return RunResult(np.array(exy), np.array(eth), np.array(dist), amcl.updates)
