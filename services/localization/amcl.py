@@ -115,9 +115,13 @@ def beam_indices(n_ranges: int, max_beams: int) -> np.ndarray:
 
 
 def kld_limit(k: int, pf_err: float, pf_z: float, min_particles: int, max_particles: int) -> int:
-    """pf.c's ``pf_resample_limit``: particles needed for ``k`` occupied bins (Wilson-Hilferty approximation)."""
+    """pf.c's ``pf_resample_limit``: particles needed for ``k`` occupied bins (Wilson-Hilferty approximation).
+
+    One bin needs no more than ``min_particles`` (the chi-square bound is 0); pf.c returns ``max_particles`` there,
+    which makes a tightly converged filter the most expensive one.
+    """
     if k <= 1:
-        return max_particles
+        return min_particles
     b = 2.0 / (9.0 * (k - 1))
     x = 1.0 - b + math.sqrt(b) * pf_z
     n = math.ceil((k - 1) / (2.0 * pf_err) * x * x * x)

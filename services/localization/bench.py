@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
@@ -23,8 +24,12 @@ def bench_map() -> OccupancyMap:
 
 
 def update_ms(particles: int, beams: int = 60, repeat: int = 200) -> float:
-    """Median ms of sensor_update + resample with ``particles`` kept (min = max) and ``beams`` beams."""
-    params = AmclParams(min_particles=particles, max_particles=particles, max_beams=beams, random_seed=1)
+    """Median ms of sensor_update + resample with ``particles`` kept (min = max) and ``beams`` beams.
+
+    Recovery injection is off: its sensor-resetting draw is a separate, occasional cost (``amcl.recovery_ms``).
+    """
+    params = AmclParams(min_particles=particles, max_particles=particles, max_beams=beams, random_seed=1,
+                        recovery_alpha_slow=0.0, recovery_alpha_fast=0.0)
     pf = ParticleFilter(bench_map(), params)
     pf.init_gaussian((10.0, 3.0, 0.3), np.diag([0.5, 0.5, 0.3]))
     idx = beam_indices(541, beams)
@@ -38,10 +43,43 @@ def update_ms(particles: int, beams: int = 60, repeat: int = 200) -> float:
     return float(np.median(time_calls(one, repeat=repeat, warmup=10, max_s=5.0)) * 1e3)
 
 
+def recovery_ms() -> float:
+    """Median ms of drawing 10% recovery particles by sensor resetting (20000 candidates weighed by the scan)."""
+    params = AmclParams(random_seed=1)
+    pf = ParticleFilter(bench_map(), params)
+    idx = beam_indices(541, params.max_beams)
+    bearings = -math.radians(135) + idx * math.radians(0.5)
+    ranges = np.random.default_rng(2).uniform(0.5, 15.0, size=idx.size)
+    pf.sensor_update(ranges, bearings, (0.45, 0.0, 0.0), 20.0)
+    return float(np.median(time_calls(lambda: pf._recovery_poses(params.max_particles // 10), repeat=20,
+                                      warmup=2, max_s=5.0)) * 1e3)
+
+
+def corridor_rms() -> list[BenchRow]:
+    """Tracking error along the Table 3 route of the corridor world (synthetic laser and odometry, core level)."""
+    from services.localization.amcl import Amcl
+    from services.localization.synthetic import TABLE3_ROUTE, World, drive, find_world, route
+
+    path = find_world("corridor")
+    if path is None:
+        print("bench: amcl.rms_error_m skipped: corridor world file not found", file=sys.stderr)
+        return []
+    world = World.load(path)
+    amcl = Amcl(world.render(), AmclParams(random_seed=1))
+    amcl.set_initial_pose(TABLE3_ROUTE[0])
+    result = drive(amcl, world, list(route(TABLE3_ROUTE)), seed=1)
+    return [
+        BenchRow("amcl.rms_error_m", result.rms_xy_m, "m", "<= 0.03 (corridor, Table 3 route, synthetic laser)"),
+        BenchRow("amcl.rms_error_rad", result.rms_theta_rad, "rad", "<= 0.02"),
+    ]
+
+
 def run() -> list[BenchRow]:
     return [
         BenchRow("amcl.update_ms", update_ms(2000), "ms", "<= 3 (2000 particles x 61 beams, update + resample)"),
         BenchRow("amcl.update_ms_5000", update_ms(5000, repeat=100), "ms", "5000 particles x 61 beams"),
+        BenchRow("amcl.recovery_ms", recovery_ms(), "ms", "only while injecting (w_fast < w_slow)"),
+        *corridor_rms(),
     ]
 
 
