@@ -35,8 +35,10 @@ class World:
     @classmethod
     def load(cls, path: Path) -> World:
         w = tomllib.loads(path.read_text())
+        extent = w["extent_m"] if "extent_m" in w else w["extent"]  # the simulator's key names, or the plain ones
+        resolution = w["resolution_m"] if "resolution_m" in w else w["resolution"]
         return cls(np.array(w["free"], dtype=float), np.array(w.get("obstacles", []), dtype=float).reshape(-1, 4),
-                   tuple(w["extent"]), float(w["resolution"]))
+                   tuple(extent), float(resolution))
 
     def is_free(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         x, y = np.asarray(x)[..., None], np.asarray(y)[..., None]
