@@ -337,6 +337,9 @@ class ParticleFilter:
             self._set_uniform_weights(n)
             return 0.0
         w /= total
+        # weights of hopeless particles underflow towards subnormal numbers, which make every later operation on
+        # them ~100x slower: flush them to zero
+        w[w < 1e-200] = 0.0
         # w_avg per beam, so that the recovery filters compare scans with different numbers of valid returns:
         # the weighted mean of pz^3 per beam, or the per-beam geometric mean of pz for the product model
         if p.laser_model_type == "likelihood_field_prob":
