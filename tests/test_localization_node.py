@@ -145,6 +145,10 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
         assert math.hypot(est[0] - truth[-1][0], est[1] - truth[-1][1]) < 0.05
         assert poses and math.hypot(poses[-1].pose.x - truth[-1][0], poses[-1].pose.y - truth[-1][1]) < 0.1
         assert len(poses[-1].covariance) == 9 and poses[-1].covariance[0] > 0
+        late: list[PoseWithCovariance] = []
+        client.subscribe("pose", late.append, latched=True)  # a late joiner gets the last pose (latched)
+        await wait_for(lambda: late, timeout_s=5, message="pose is not latched")
+        assert late[0].pose.x == pytest.approx(poses[-1].pose.x)
 
         bad = await client.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=50.0, y=1.0)))
         assert not bad.ok and "outside the map" in bad.message

@@ -1,7 +1,7 @@
 """The localization service: serves the map and runs AMCL on odometry and scans.
 
-Publishes ``map`` (latched: its queryable also answers the ``map`` query), ``pose`` (after each filter update),
-``tf/map_odom`` (every scan once localized; the map pose between filter updates is map_odom ∘ odom) and
+Publishes ``map`` (latched: its queryable also answers the ``map`` query), ``pose`` (latched, after each filter update),
+``tf/map_odom`` (latched, every scan once localized; the map pose between updates is map_odom ∘ odom) and
 ``particles`` (throttled). Serves ``localization/initial_pose``, ``localization/global`` and
 ``localization/nomotion``. The odom pose at a scan's stamp is interpolated from a short odom history. The last
 pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial pose after a restart.
@@ -104,8 +104,8 @@ class LocalizationNode:
         self.initialised = False
         self.pose_file = Path(cfg.state_dir) / POSE_FILE if cfg.state_dir else None
         self.pub_map = self.node.publisher("map", latched=True)
-        self.pub_pose = self.node.publisher("pose")
-        self.pub_tf = self.node.publisher("tf/map_odom")
+        self.pub_pose = self.node.publisher("pose", latched=True)  # latched like amcl_pose
+        self.pub_tf = self.node.publisher("tf/map_odom", latched=True)
         self.pub_particles = self.node.publisher("particles")
         self._load_map()
         self._initialise()
