@@ -194,3 +194,21 @@ def test_odom_history_interpolates_and_bounds():
     assert h.latest_stamp == 10.2
     h.add(12.0, (2.0, 2.0, 0.0))
     assert list(h.stamps) == [12.0]
+
+
+def test_reanchor_after_an_odometry_restart_keeps_the_map_pose():
+    world, grid = room()
+    params = AmclParams(random_seed=2)
+    amcl = Amcl(grid, params)
+    laser = Laser(world)
+    mount = (0.45, 0.0, 0.0)
+
+    def beams(pose):
+        return select_beams(laser.scan(pose, mount), laser.angle_min, laser.angle_increment, 0.05, 20.0, params)
+
+    amcl.set_initial_pose((2.0, 2.0, 0.0), np.diag([0.01, 0.01, 0.01]))
+    amcl.process((10.0, -3.0, 1.0), beams((2.0, 2.0, 0.0)), mount)
+    amcl.reanchor_odometry()  # drive restarted: odometry starts again at zero, the robot has not moved
+    assert amcl.process((0.0, 0.0, 0.0), beams((2.0, 2.0, 0.0)), mount)
+    est = compose(amcl.map_odom, (0.0, 0.0, 0.0))
+    assert math.hypot(est[0] - 2.0, est[1] - 2.0) < 0.05 and abs(est[2]) < 0.03

@@ -603,6 +603,10 @@ class Amcl:
     def request_nomotion_update(self) -> None:
         self.force_update = True
 
+    def reanchor_odometry(self) -> None:
+        """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
+        self.pf_odom_pose = None
+
     def _reinitialised(self) -> None:
         self.pf_odom_pose = None
         self.resample_count = 0

@@ -28,6 +28,7 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     - ``laser_mount_from_scan``: use the LaserScan's ``mount``; false: the ``[robot]`` laser_mount_* values.
     - odom/scan synchronisation: the odom pose at a scan's stamp is interpolated from ``odom_history_s`` of odom;
       a scan newer than the last odom waits for the next odom, or is extrapolated up to ``scan_odom_tolerance_s``.
+      Odometry that jumps by more than ``odom_jump_m`` between two messages (drive restarted) re-anchors AMCL.
     """
 
     map_yaml: str = ""
@@ -46,6 +47,7 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     particles_publish_hz: float = 2.0
     odom_history_s: float = 2.0
     scan_odom_tolerance_s: float = 0.1
+    odom_jump_m: float = 1.0
 
     def __post_init__(self) -> None:
         self.validate()
@@ -62,6 +64,8 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
                 raise ValueError(f"{name} must be >= 0")
         if not self.odom_history_s > 0:
             raise ValueError("odom_history_s must be > 0")
+        if not self.odom_jump_m > 0:
+            raise ValueError("odom_jump_m must be > 0")
 
     def amcl_params(self) -> AmclParams:
         """Only the AMCL parameters, as the filter core takes them."""

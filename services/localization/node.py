@@ -199,6 +199,16 @@ class LocalizationNode:
         if not _finite(msg.stamp, p.x, p.y, p.theta):
             self.stats["bad_odom"] += 1
             return
+        last = self.odom.poses[-1] if self.odom.poses else None
+        if last is not None and math.hypot(p.x - last[0], p.y - last[1]) > self.cfg.odom_jump_m:
+            # drive restarted (odometry back at zero) or was reset: keep the particles, re-anchor on the new odom
+            self.stats["odom_jumps"] += 1
+            self.log.warning("odometry jumped from (%.2f, %.2f) to (%.2f, %.2f); re-anchoring AMCL on it",
+                             last[0], last[1], p.x, p.y)
+            self.odom = OdomHistory(self.cfg.odom_history_s)
+            self.pending_scan = None
+            if self.amcl is not None:
+                self.amcl.reanchor_odometry()
         self.odom.add(msg.stamp, (p.x, p.y, p.theta))
         if self.pending_scan is not None and msg.stamp >= self.pending_scan.stamp:
             scan, self.pending_scan = self.pending_scan, None
@@ -242,6 +252,9 @@ class LocalizationNode:
             return
         if self.cfg.laser_mount_from_scan:
             mount = (scan.mount.x, scan.mount.y, scan.mount.theta)
+            if not _finite(*mount):
+                self.stats["bad_scans"] += 1
+                return
         else:
             r = self.ctx.robot
             mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
