@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from proto.messages import Empty, GroundTruth, Odometry, Pose2D, TeleportRequest, Transform2D
+from proto.messages import Empty, GroundTruth, Odometry, Pose2D, TeleportRequest, Transform2D, Twist2D
 from services.common.node import Node
 from services.localization.amcl import compose, wrap_angle
 from services.localization.synthetic import TABLE3_ROUTE, route
@@ -123,5 +123,69 @@ async def test_amcl_in_the_simulated_corridor(stack_factory):
         print(f"kidnapped 5 m: error < 0.2 m after {settled} m of travel; final {errors[-1, 1]:.3f} m")
         assert errors[-1, 0] - errors[0, 0] >= 9.5
         assert settled is not None and settled <= 10.0
+    finally:
+        node.close()
+
+
+def drive_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("services.drive.__main__") is not None
+
+
+@pytest.mark.skipif(not drive_available(), reason="needs the drive service")
+async def test_amcl_tracks_the_robot_driven_along_the_table3_route(stack_factory):
+    """sim + drive + lidar + localization: the robot is driven by cmd_vel (a test-side P controller on the ground
+    truth, within the Table 2 limits) from the start through goals 1, 2 and 3; odometry is the drive's."""
+    from services.common.robot import RobotSpec
+    from services.localization.node import OdomHistory
+
+    stack = stack_factory(services=["sim", "drive", "lidar", "localization"], world="corridor", speed=2.0).start()
+    node = Node("loc-drive-test", stack.session(), stack.keys)
+    spec = RobotSpec()
+    odom = OdomHistory(keep_s=5.0)
+    state: dict = {"tf": None, "truth": None}
+    errors: list[tuple[float, float]] = []
+
+    def on_odom(msg: Odometry) -> None:
+        odom.add(msg.stamp, (msg.pose.x, msg.pose.y, msg.pose.theta))
+
+    def on_truth(gt: GroundTruth) -> None:
+        state["truth"] = gt
+        tf = state["tf"]
+        o = odom.at(gt.stamp, 0.05)
+        if tf is None or o is None:
+            return
+        est = compose((tf.x, tf.y, tf.theta), o)
+        errors.append((math.hypot(est[0] - gt.pose.x, est[1] - gt.pose.y),
+                       abs(float(wrap_angle(est[2] - gt.pose.theta)))))
+
+    node.subscribe("odom", on_odom)
+    node.subscribe("sim/ground_truth", on_truth)
+    node.subscribe("tf/map_odom", lambda tf: state.__setitem__("tf", tf))
+    cmd = node.publisher("cmd_vel")
+    try:
+        await wait_for(lambda: state["tf"] is not None and state["truth"] is not None, timeout_s=30,
+                       message="no tf/map_odom or ground truth")
+        errors.clear()
+        for goal in TABLE3_ROUTE[1:4]:
+            deadline = asyncio.get_running_loop().time() + 120.0
+            while True:
+                p = state["truth"].pose
+                dx, dy = goal[0] - p.x, goal[1] - p.y
+                dth = float(wrap_angle(goal[2] - p.theta))
+                if math.hypot(dx, dy) < 0.05 and abs(dth) < 0.05:
+                    break
+                assert asyncio.get_running_loop().time() < deadline, f"goal {goal} not reached"
+                c, s = math.cos(p.theta), math.sin(p.theta)
+                vx, vy, wz = spec.clamp_twist(1.0 * (c * dx + s * dy), 1.0 * (-s * dx + c * dy), 1.5 * dth)
+                cmd.put(Twist2D(vx=vx, vy=vy, wz=wz))
+                await asyncio.sleep(0.05)
+        cmd.put(Twist2D())
+        e = np.array(errors)
+        rms_xy, rms_theta = float(np.sqrt(np.mean(e[:, 0] ** 2))), float(np.sqrt(np.mean(e[:, 1] ** 2)))
+        print(f"\ndriven start -> goal 3: AMCL RMS error {rms_xy:.4f} m, {rms_theta:.4f} rad over {len(e)} samples")
+        assert not state["truth"].collided
+        assert rms_xy <= 0.03 and rms_theta <= 0.02
     finally:
         node.close()
