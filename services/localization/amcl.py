@@ -157,7 +157,7 @@ class LikelihoodField:
         self.distance_m = np.minimum(dist_m, self.max_dist)
         self.params = params
         self._range_max: float | None = None
-        self.table = np.empty((grid.height + 2, grid.width + 2))
+        self.table = np.empty((grid.height + 2, grid.width + 2), dtype=np.float32)
         self.flat = self.table.reshape(-1)
 
     def prepare(self, range_max: float) -> None:
@@ -224,12 +224,13 @@ class ParticleFilter:
         if beams <= self._beam_capacity:
             return
         size = self.params.max_particles * beams
-        self._bx = np.empty(size)
-        self._by = np.empty(size)
-        self._tmp = np.empty(size)
+        # float32 endpoints (grid cells; 1e-4 cell precision) halve the memory traffic of the N x B passes
+        self._bx = np.empty(size, dtype=np.float32)
+        self._by = np.empty(size, dtype=np.float32)
+        self._tmp = np.empty(size, dtype=np.float32)
         self._ix = np.empty(size, dtype=np.intp)
         self._iy = np.empty(size, dtype=np.intp)
-        self._vals = np.empty(size)
+        self._vals = np.empty(size, dtype=np.float32)
         self._beam_capacity = beams
 
     def _random_poses(self, out: np.ndarray) -> None:
@@ -325,8 +326,8 @@ class ParticleFilter:
         self._ensure_beam_buffers(b)
         self.field.prepare(range_max)
         res = self.grid.resolution
-        rc = ranges * np.cos(bearings) / res
-        rs = ranges * np.sin(bearings) / res
+        rc = (ranges * np.cos(bearings) / res).astype(np.float32)
+        rs = (ranges * np.sin(bearings) / res).astype(np.float32)
         self._last_beams = (rc, rs, mount)
         like = self._percol[5, :n]
         self._likelihood_sums(self.poses, n, like)
@@ -392,6 +393,8 @@ class ParticleFilter:
         cga, sga = self._percol[3, :n], self._percol[4, :n]
         np.cos(ga, out=cga)
         np.sin(ga, out=sga)
+        cga, sga = cga.astype(np.float32), sga.astype(np.float32)
+        gx, gy = gx.astype(np.float32), gy.astype(np.float32)
         size = n * b
         bx = self._bx[:size].reshape(n, b)
         by = self._by[:size].reshape(n, b)
