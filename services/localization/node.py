@@ -149,7 +149,6 @@ class LocalizationNode:
             self.amcl.set_initial_pose(pose, np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa]))
             self.log.info("starting at the configured initial pose (%.3f, %.3f, %.3f)", *pose)
         else:
-            self.amcl = Amcl(self.grid, cfg.amcl_params()) if self.grid is not None else None
             self.initialised = False
             self.log.info("waiting for localization/initial_pose or localization/global")
             return
