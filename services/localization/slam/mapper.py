@@ -18,7 +18,7 @@ import msgspec
 import numpy as np
 
 from .likelihood import MultiResolutionGrid
-from .matcher import MatchResult, correlative_search, refine
+from .matcher import MatchResult, correlative_search, refine, translation_sharpness
 from .occupancy import OccupancyGrid
 from .pose_graph import PoseGraph
 from .se2 import between, compose, transform_points, wrap_angle
@@ -49,7 +49,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_min_travel_m: float = 8.0
     loop_neighbour_keyframes: int = 12
     loop_min_score: float = 0.55
-    loop_min_eigenvalue: float = 2.0e4
+    loop_min_sharpness: float = 10.0
     loop_window_xy_m: float = 2.0
     loop_window_theta_rad: float = 0.4
     loop_theta_step_rad: float = 0.015
@@ -109,7 +109,7 @@ class GraphSlam:
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
         self.loop_closures: list[tuple[int, int]] = []
-        self.loop_attempts: list[tuple[int, int, str, float, float]] = []
+        self.loop_attempts: list[tuple[float, float]] = []
         self.rescued_matches = 0
         self.weak_matches = 0
         c = self.config
@@ -252,8 +252,7 @@ class GraphSlam:
         points = self._keyframes[k].points
         guess = between(poses[candidate], poses[k])
         result = refine(grid, points, guess)
-        accepted = self._loop_ok(result, guess)
-        self.loop_attempts.append((candidate, k, "refine", result.score, result.min_translation_eigenvalue()))
+        accepted = self._loop_ok(grid, points, result, guess)
         recently_closed = k - self._last_loop_keyframe <= 2 * c.loop_search_every_keyframes
         if not accepted and not recently_closed and k - self._last_loop_search >= c.loop_search_every_keyframes:
             self._last_loop_search = k
@@ -264,9 +263,7 @@ class GraphSlam:
                 trial = refine(grid, points, pose)
                 if best is None or trial.score > best.score:
                     best = trial
-            if best is not None:
-                self.loop_attempts.append((candidate, k, "search", best.score, best.min_translation_eigenvalue()))
-            if best is not None and self._loop_ok(best, guess):
+            if best is not None and self._loop_ok(grid, points, best, guess):
                 result, accepted = best, True
         if not accepted:
             return
@@ -278,13 +275,16 @@ class GraphSlam:
         if correction > 0.1 or self._loops_since_optimize >= c.optimize_every_loops:
             self.optimize()
 
-    def _loop_ok(self, result: MatchResult, guess: np.ndarray) -> bool:
+    def _loop_ok(self, grid: MultiResolutionGrid, points: np.ndarray, result: MatchResult, guess: np.ndarray) -> bool:
         c = self.config
-        if result.score < c.loop_min_score or result.min_translation_eigenvalue() < c.loop_min_eigenvalue:
-            return False
         offset = np.hypot(*(result.pose[:2] - guess[:2]))
-        return offset <= c.loop_window_xy_m + 0.5 and abs(wrap_angle(result.pose[2] - guess[2])) <= \
-            c.loop_window_theta_rad + 0.1
+        if result.score < c.loop_min_score or offset > c.loop_window_xy_m + 0.5 or \
+                abs(wrap_angle(result.pose[2] - guess[2])) > c.loop_window_theta_rad + 0.1:
+            self.loop_attempts.append((result.score, 0.0))
+            return False
+        sharpness = translation_sharpness(grid.levels[0], points, result.pose)
+        self.loop_attempts.append((result.score, sharpness))
+        return sharpness >= c.loop_min_sharpness
 
     def optimize(self, iterations: int = 20) -> None:
         """Re-optimise the pose graph; the local submap and loop grids are rebuilt from the new poses."""
