@@ -40,6 +40,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     odom_prior_sigma_theta_rad: float = 0.05
     rescue_window_xy_m: float = 0.4
     rescue_window_theta_rad: float = 0.25
+    fast_turn_rad: float = 0.15
     sequential_sigma_xy_m: float = 0.02
     sequential_sigma_theta_rad: float = 0.005
     loop_sigma_xy_m: float = 0.03
@@ -108,7 +109,7 @@ class GraphSlam:
         self._loops_since_optimize = 0
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
-        self.loop_closures: list[tuple[int, int]] = []
+        self.loop_closures: list[tuple[int, int, float]] = []
         self.loop_attempts: list[tuple[float, float]] = []
         self.rescued_matches = 0
         self.weak_matches = 0
@@ -157,24 +158,27 @@ class GraphSlam:
         cloud = cloud[near] if near.sum() > 10 else cloud
         self._submap = MultiResolutionGrid.from_points(cloud, c.resolution_m, c.levels)
 
-    def _match_local(self, points: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    def _match_local(self, points: np.ndarray, predicted: np.ndarray, turn_rad: float) -> np.ndarray:
         c = self.config
         if self._submap is None:
             self._rebuild_submap(predicted)
         assert self._submap is not None
         result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
-        if result.score >= c.min_match_score:
+        if result.score >= c.min_match_score and abs(turn_rad) < c.fast_turn_rad:
             return result.pose
+        # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search rotations widely
+        window = c.rescue_window_theta_rad + 0.5 * abs(turn_rad)
         candidates = correlative_search(self._submap.levels[-1], points, predicted,
-                                        window_xy_m=c.rescue_window_xy_m, window_theta_rad=c.rescue_window_theta_rad,
+                                        window_xy_m=c.rescue_window_xy_m, window_theta_rad=window,
                                         theta_step_rad=0.02, n_best=3)
         best = result
         for _, pose in candidates:
             trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._odom_prior)
-            if trial.score > best.score:
+            if trial.score > best.score + 0.02:
                 best = trial
         if best.score >= c.min_match_score:
-            self.rescued_matches += 1
+            if best is not result:
+                self.rescued_matches += 1
             return best.pose
         self.weak_matches += 1
         return predicted if best.score < 0.5 * c.min_match_score else best.pose
@@ -199,7 +203,8 @@ class GraphSlam:
         previous = self.current_pose()
         predicted = compose(previous, between(self._last_odom, odom_pose))
         self._last_odom = odom_pose
-        pose = self._match_local(match_points, predicted) if len(match_points) >= 20 else predicted
+        turn = float(wrap_angle(predicted[2] - previous[2]))
+        pose = self._match_local(match_points, predicted, turn) if len(match_points) >= 20 else predicted
         last_kf = self.n_keyframes - 1
         from_kf = between(self.graph.pose(last_kf), pose)
         moved = np.hypot(from_kf[0], from_kf[1])
@@ -267,11 +272,11 @@ class GraphSlam:
                 result, accepted = best, True
         if not accepted:
             return
+        correction = np.hypot(*(result.pose[:2] - guess[:2])) + abs(wrap_angle(result.pose[2] - guess[2]))
         self.graph.add_edge(candidate, k, result.pose, self._loop_info, robust_scale=c.loop_robust_scale)
-        self.loop_closures.append((candidate, k))
+        self.loop_closures.append((candidate, k, float(correction)))
         self._last_loop_keyframe = k
         self._loops_since_optimize += 1
-        correction = np.hypot(*(result.pose[:2] - guess[:2])) + abs(wrap_angle(result.pose[2] - guess[2]))
         if correction > 0.1 or self._loops_since_optimize >= c.optimize_every_loops:
             self.optimize()
 
