@@ -22,7 +22,7 @@ def _logs_dir() -> Path:
 
 
 def bench_slam() -> list[BenchRow]:
-    from services.localization.slam.evaluation import parse_relations, relative_pose_error
+    from services.localization.slam.evaluation import parse_relations, relative_pose_error, scan_poses
     from services.localization.slam.logs import read_log
     from services.localization.slam.offline import run_slam
 
@@ -31,9 +31,11 @@ def bench_slam() -> list[BenchRow]:
     if not bag.is_file():
         print(f"bench slam: {bag} not found (set ZAGV_SHARED); no rows", file=sys.stderr)
         return []
-    run = run_slam(read_log(bag))
+    log = read_log(bag)
+    run = run_slam(log)
+    stamps, poses = run.slam.trajectory()
     with relations_file.open() as f:
-        error = relative_pose_error(*run.slam.trajectory(), parse_relations(f))
+        error = relative_pose_error(stamps, scan_poses(poses, log.sensor_pose), parse_relations(f))
     return [
         BenchRow("slam.realtime_factor", run.realtime_factor, "x", ">= 10 (fr079)"),
         BenchRow("slam.scan_ms", 1e3 * run.processing_s / run.n_scans, "ms", "per scan, fr079"),

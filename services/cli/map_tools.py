@@ -3,7 +3,8 @@
 ``zagv map build LOG --out DIR`` runs graph SLAM over a CARMEN ``.clf`` or ROS 1 ``.bag`` log and writes
 ``DIR/NAME.yaml`` + ``DIR/NAME.pgm`` (ROS map_server, trinary) and ``DIR/NAME.trajectory.txt``
 (``stamp_s x_m y_m theta_rad`` per scan). ``zagv map eval LOG RELATIONS [--trajectory FILE] [--json OUT]``
-reports the Kümmerle et al. 2009 relative-pose error of that trajectory (estimated anew unless given).
+reports the Kümmerle et al. 2009 relative-pose error of that trajectory (estimated anew unless given), on the
+laser poses (the robot poses composed with the log's laser mount) since the relations relate scans.
 The ``zagv map`` group calls ``add_build_parser`` and ``add_eval_parser``; ``python -m services.cli.map_tools``
 runs the same commands standalone.
 """
@@ -59,22 +60,30 @@ def add_eval_parser(map_subparsers: argparse._SubParsersAction) -> argparse.Argu
     p.add_argument("relations", help="relations file: 't1 t2 dx dy dz roll pitch yaw' per line")
     p.add_argument("--trajectory", help="evaluate this trajectory file instead of running SLAM on LOG")
     p.add_argument("--json", help="also write the figures to this JSON file")
+    p.add_argument("--robot-frame", action="store_true",
+                   help="compare robot poses, not laser poses (the relations relate scans, i.e. laser poses)")
     _add_common(p)
     p.set_defaults(func=run_eval)
     return p
 
 
-def _run(args: argparse.Namespace):
+def _read(path: str):
     from services.localization.slam.logs import read_log
+
+    try:
+        log = read_log(path)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"zagv map: cannot read {path}: {exc}") from exc
+    if not log.scans:
+        raise SystemExit(f"zagv map: {path} holds no laser scan")
+    return log
+
+
+def _run(args: argparse.Namespace, log=None):
     from services.localization.slam.offline import run_slam
 
     config = _slam_config(args.settings)
-    try:
-        log = read_log(args.log)
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"zagv map: cannot read {args.log}: {exc}") from exc
-    if not log.scans:
-        raise SystemExit(f"zagv map: {args.log} holds no laser scan")
+    log = log or _read(args.log)
     run = run_slam(log, config, max_scans=args.max_scans)
     slam = run.slam
     print(f"slam: {run.n_scans} scans, {slam.n_keyframes} keyframes, {len(slam.loop_closures)} loop closures, "
@@ -98,7 +107,7 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
-    from services.localization.slam.evaluation import parse_relations, relative_pose_error
+    from services.localization.slam.evaluation import parse_relations, relative_pose_error, scan_poses
     from services.localization.slam.map_files import read_trajectory
 
     try:
@@ -107,14 +116,17 @@ def run_eval(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         raise SystemExit(f"zagv map eval: cannot read relations {args.relations}: {exc}") from exc
     extra: dict = {}
+    log = _read(args.log)
     if args.trajectory:
         stamps, poses = read_trajectory(args.trajectory)
     else:
-        run = _run(args)
+        run = _run(args, log)
         stamps, poses = run.slam.trajectory()
         extra = {"processing_s": run.processing_s, "log_duration_s": run.log_duration_s,
                  "realtime_factor": run.realtime_factor, "keyframes": run.slam.n_keyframes,
                  "loop_closures": len(run.slam.loop_closures)}
+    if not args.robot_frame:
+        poses = scan_poses(poses, log.sensor_pose)
     try:
         error = relative_pose_error(stamps, poses, relations)
     except ValueError as exc:

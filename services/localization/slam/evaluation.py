@@ -2,7 +2,8 @@
 
 For each ground-truth relation δ*_ij (the pose of scan j seen from scan i) and the estimate
 δ_ij = x_i⁻¹ ⊕ x_j, the error is ε = δ*_ij⁻¹ ⊕ δ_ij; the translational error is ‖ε_xy‖ (m) and the rotational
-error |ε_θ| (rad). Reported: mean and standard deviation of both over all relations.
+error |ε_θ| (rad). Reported: mean and standard deviation of both over all relations. The relations relate
+*scans*, i.e. poses of the laser: a robot trajectory is first moved to the laser frame (``scan_poses``).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .se2 import between, wrap_angle
+from .se2 import between, compose, wrap_angle
 
 
 @dataclass
@@ -52,6 +53,12 @@ class RelativePoseError:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def scan_poses(robot_poses: np.ndarray, sensor_pose: np.ndarray) -> np.ndarray:
+    """Laser poses x ⊕ s of robot poses x (N, 3) for a laser mounted at s = (x, y, theta) on the robot."""
+    robot_poses = np.asarray(robot_poses, float)
+    return compose(robot_poses, np.broadcast_to(np.asarray(sensor_pose, float), robot_poses.shape))
 
 
 def _lookup(stamps_s: np.ndarray, at_s: np.ndarray, tolerance_s: float) -> tuple[np.ndarray, np.ndarray]:

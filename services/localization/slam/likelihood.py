@@ -43,9 +43,8 @@ class LikelihoodGrid:
         cols = np.concatenate([x0, x0 + 1, x0, x0 + 1])
         rows = np.concatenate([y0, y0, y0 + 1, y0 + 1])
         weights = np.concatenate([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv]).astype(np.float32)
-        order = np.argsort(weights, kind="stable")
         hits = np.zeros((shape[1], shape[0]), np.float32)
-        hits[rows[order], cols[order]] = weights[order]
+        np.maximum.at(hits.ravel(), rows * shape[0] + cols, weights)
         blurred = ndimage.gaussian_filter(hits, sigma_cells, truncate=3.0)
         field = np.minimum(blurred * (np.sqrt(2.0 * np.pi) * sigma_cells), 1.0).astype(np.float32)
         return cls(field, lo.astype(float), float(resolution_m))
@@ -59,22 +58,27 @@ class LikelihoodGrid:
         found to a small fraction of a cell.
         """
         f = self.field
+        height, width = f.shape
         u = (points_xy_m[:, 0] - self.origin_xy_m[0]) / self.resolution_m - 0.5
         v = (points_xy_m[:, 1] - self.origin_xy_m[1]) / self.resolution_m - 0.5
         x = np.rint(u).astype(np.intp)
         y = np.rint(v).astype(np.intp)
-        ok = (x >= 1) & (y >= 1) & (x < f.shape[1] - 1) & (y < f.shape[0] - 1)
-        x = np.where(ok, x, 1)
-        y = np.where(ok, y, 1)
+        ok = (x >= 1) & (y >= 1) & (x < width - 1) & (y < height - 1)
+        x[~ok] = 1
+        y[~ok] = 1
         du = u - x
         dv = v - y
-        c = f[y, x]
-        e, w, n, s = f[y, x + 1], f[y, x - 1], f[y + 1, x], f[y - 1, x]
+        flat = f.ravel()
+        i = y * width + x
+        c = flat.take(i)
+        e, w = flat.take(i + 1), flat.take(i - 1)
+        n, s = flat.take(i + width), flat.take(i - width)
         gx = 0.5 * (e - w)
         gy = 0.5 * (n - s)
         hxx = e - 2.0 * c + w
         hyy = n - 2.0 * c + s
-        hxy = 0.25 * (f[y + 1, x + 1] - f[y - 1, x + 1] - f[y + 1, x - 1] + f[y - 1, x - 1])
+        hxy = 0.25 * (flat.take(i + width + 1) - flat.take(i - width + 1) - flat.take(i + width - 1)
+                      + flat.take(i - width - 1))
         value = c + gx * du + gy * dv + 0.5 * (hxx * du * du + 2.0 * hxy * du * dv + hyy * dv * dv)
         grad = np.stack([gx + hxx * du + hxy * dv, gy + hxy * du + hyy * dv], axis=1) / self.resolution_m
         value = np.where(ok, value, 0.0)

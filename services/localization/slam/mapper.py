@@ -32,11 +32,11 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     match_max_range_m: float = 20.0
     map_max_range_m: float = 25.0
     point_spacing_m: float = 0.05
-    keyframe_distance_m: float = 0.25
+    keyframe_distance_m: float = 0.5
     keyframe_angle_rad: float = 0.2
-    submap_keyframes: int = 30
+    submap_keyframes: int = 20
     min_match_score: float = 0.35
-    odom_prior_sigma_xy_m: float = 0.1
+    odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
     rescue_window_xy_m: float = 0.4
     rescue_window_theta_rad: float = 0.25
@@ -45,7 +45,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     sequential_sigma_theta_rad: float = 0.005
     loop_sigma_xy_m: float = 0.03
     loop_sigma_theta_rad: float = 0.01
-    loop_robust_scale: float = 3.0
+    loop_robust_scale: float = 10.0
     loop_search_radius_m: float = 4.0
     loop_min_travel_m: float = 8.0
     loop_neighbour_keyframes: int = 12
@@ -56,6 +56,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_theta_step_rad: float = 0.015
     loop_search_every_keyframes: int = 3
     optimize_every_loops: int = 5
+    loop_grid_cache_size: int = 64
 
 
 @dataclass
@@ -237,6 +238,8 @@ class GraphSlam:
         clouds = [transform_points(between(poses[center], poses[m]), self._keyframes[m].points)
                   for m in range(lo, hi + 1)]
         grid = MultiResolutionGrid.from_points(np.concatenate(clouds), c.resolution_m, c.levels)
+        if len(self._loop_grids) >= c.loop_grid_cache_size:
+            self._loop_grids.pop(next(iter(self._loop_grids)))
         self._loop_grids[center] = grid
         return grid
 
@@ -292,11 +295,11 @@ class GraphSlam:
         return sharpness >= c.loop_min_sharpness
 
     def optimize(self, iterations: int = 20) -> None:
-        """Re-optimise the pose graph; the local submap and loop grids are rebuilt from the new poses."""
+        """Re-optimise the pose graph; the local submap is rebuilt from the new poses. Loop grids are kept: they
+        hold a keyframe's neighbourhood in that keyframe's frame, which optimisation barely changes."""
         self.graph.optimize(iterations)
         self._loops_since_optimize = 0
         self._submap = None
-        self._loop_grids.clear()
 
     def finish(self) -> None:
         """Final optimisation after the last scan."""

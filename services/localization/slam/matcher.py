@@ -56,9 +56,9 @@ def translation_sharpness(grid: LikelihoodGrid, points: np.ndarray, pose: np.nda
 def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndarray, *,
            iterations_per_level: int = 6, field_sigma: float = 0.3,
            prior_pose: np.ndarray | None = None, prior_information: np.ndarray | None = None,
-           min_step: float = 1e-4) -> MatchResult:
+           min_step: float = 5e-4) -> MatchResult:
     """Gauss-Newton from the coarsest to the finest level (see the module docstring); a step that raises the
-    cost is halved (up to 4 times), since the residuals do not vanish at the optimum."""
+    cost is halved (up to twice), since the residuals do not vanish at the optimum."""
     pose = np.asarray(initial_pose, float).copy()
     inv_var = 1.0 / field_sigma**2
     has_prior = prior_information is not None and prior_pose is not None
@@ -94,7 +94,7 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
             except np.linalg.LinAlgError:
                 break
             accepted = False
-            for _ in range(5):
+            for _ in range(3):
                 trial = pose + step
                 trial[2] = float(wrap_angle(trial[2]))
                 t_world, t_residual, t_grad, t_cost, t_diff = evaluate(grid, trial)
