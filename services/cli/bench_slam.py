@@ -38,6 +38,7 @@ def bench_slam() -> list[BenchRow]:
         error = relative_pose_error(stamps, scan_poses(poses, log.sensor_pose), parse_relations(f))
     return [
         BenchRow("slam.realtime_factor", run.realtime_factor, "x", ">= 10 (fr079)"),
+        BenchRow("slam.realtime_factor_cpu", run.realtime_factor_cpu, "x", "log duration / CPU time"),
         BenchRow("slam.scan_ms", 1e3 * run.processing_s / run.n_scans, "ms", "per scan, fr079"),
         BenchRow("slam.fr079_translation_error_m", error.translation_mean_m, "m", "< 0.061 (gmapping), 0.056 graph"),
         BenchRow("slam.fr079_rotation_error_rad", error.rotation_mean_rad, "rad", "Kümmerle 2009 metric"),

@@ -87,7 +87,8 @@ def _run(args: argparse.Namespace, log=None):
     run = run_slam(log, config, max_scans=args.max_scans)
     slam = run.slam
     print(f"slam: {run.n_scans} scans, {slam.n_keyframes} keyframes, {len(slam.loop_closures)} loop closures, "
-          f"{run.processing_s:.1f} s for {run.log_duration_s:.1f} s of log (x{run.realtime_factor:.1f} real time)",
+          f"{run.processing_s:.1f} s for {run.log_duration_s:.1f} s of log (x{run.realtime_factor:.1f} real time, "
+          f"x{run.realtime_factor_cpu:.1f} by CPU time)",
           file=sys.stderr)
     return run
 
@@ -123,7 +124,8 @@ def run_eval(args: argparse.Namespace) -> int:
         run = _run(args, log)
         stamps, poses = run.slam.trajectory()
         extra = {"processing_s": run.processing_s, "log_duration_s": run.log_duration_s,
-                 "realtime_factor": run.realtime_factor, "keyframes": run.slam.n_keyframes,
+                 "realtime_factor": run.realtime_factor,
+                 "processing_cpu_s": run.processing_cpu_s, "keyframes": run.slam.n_keyframes,
                  "loop_closures": len(run.slam.loop_closures)}
     if not args.robot_frame:
         poses = scan_poses(poses, log.sensor_pose)
