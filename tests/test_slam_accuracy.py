@@ -17,6 +17,7 @@ LOGS = [
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # ~1 min per log on an idle 2-core machine; far longer under load
 @pytest.mark.parametrize(("log_name", "relations_name", "gmapping_error_m"), LOGS, ids=["mit-csail", "fr079"])
 def test_translational_error_beats_gmapping(shared_dir, log_name, relations_name, gmapping_error_m):
     logs = shared_dir / "data" / "logs"

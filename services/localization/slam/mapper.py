@@ -111,7 +111,7 @@ class GraphSlam:
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
         self.loop_closures: list[tuple[int, int, float]] = []
-        self.loop_attempts: list[tuple[float, float]] = []
+        self.loop_checks = 0
         self.rescued_matches = 0
         self.weak_matches = 0
         c = self.config
@@ -288,10 +288,9 @@ class GraphSlam:
         offset = np.hypot(*(result.pose[:2] - guess[:2]))
         if result.score < c.loop_min_score or offset > c.loop_window_xy_m + 0.5 or \
                 abs(wrap_angle(result.pose[2] - guess[2])) > c.loop_window_theta_rad + 0.1:
-            self.loop_attempts.append((result.score, 0.0))
             return False
         sharpness = translation_sharpness(grid.levels[0], points, result.pose)
-        self.loop_attempts.append((result.score, sharpness))
+        self.loop_checks += 1
         return sharpness >= c.loop_min_sharpness
 
     def optimize(self, iterations: int = 20) -> None:
