@@ -1,8 +1,8 @@
 """Graph SLAM front- and back-end: feed scans with odometry, get the optimised trajectory and map.
 
 Every scan is matched against a local submap built from the last keyframes (``matcher.refine`` on a
-multi-resolution likelihood grid, with the odometry prediction as a weak prior; a correlative search rescues
-poor matches). A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous
+multi-resolution likelihood grid, with the odometry prediction as a prior; a correlative search rescues
+poor matches and fast turns). A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous
 keyframe by the matched relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back
 along the path); it is matched against that keyframe's neighbourhood (refinement from the current estimate,
 then a wide correlative search if that fails) and the match is accepted as a loop constraint only when its
