@@ -51,7 +51,19 @@ def add_info(group: argparse._SubParsersAction) -> None:
 
 
 #: functions that add one subcommand to the ``map`` group
-SUBCOMMANDS = [add_info]
+def add_build(group: argparse._SubParsersAction) -> None:
+    from services.cli.map_tools import add_build_parser
+
+    add_build_parser(group)
+
+
+def add_eval(group: argparse._SubParsersAction) -> None:
+    from services.cli.map_tools import add_eval_parser
+
+    add_eval_parser(group)
+
+
+SUBCOMMANDS = [add_info, add_build, add_eval]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
