@@ -14,6 +14,7 @@ import asyncio
 import base64
 import logging
 import math
+import sqlite3
 import uuid
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -426,6 +427,12 @@ def _on_db_error(_: Request, exc: PoseDbError) -> Response[dict]:
     return _error(422, str(exc))
 
 
+def _on_storage(request: Request, exc: sqlite3.OperationalError) -> Response[dict]:
+    """The pose database cannot be used (file read-only, disk full, locked): 503 naming SQLite's reason."""
+    log.error("%s %s: pose database error: %s", request.method, request.url.path, exc)
+    return _error(503, f"pose database unavailable: {exc}")
+
+
 def _on_rejected(_: Request, exc: RobotRejected) -> Response[dict]:
     return _error(409, str(exc))
 
@@ -463,6 +470,7 @@ def create_app(backend: Backend) -> Litestar:
             Exception: _on_internal,
             PoseNotFound: _on_not_found,
             PoseDbError: _on_db_error,
+            sqlite3.OperationalError: _on_storage,
             RobotRejected: _on_rejected,
             RobotUnavailable: _on_unavailable,
         },
