@@ -24,6 +24,7 @@ import zenoh
 from proto.keys import Keys
 from services.cli.supervisor import ChildSpec, Supervisor, python_module
 from services.common.session import open_session, router_settings
+from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
 SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
@@ -53,10 +54,12 @@ class StackPlan:
     run_dir: str = ""
     extra_sets: list[str] = field(default_factory=list)
     only: list[str] | None = None
+    #: a router to use instead of the embedded one (e.g. ``tcp/127.0.0.1:7447`` of ``zagv router`` or zenohd)
+    external_router: str | None = None
 
     @property
     def endpoint(self) -> str:
-        return f"tcp/127.0.0.1:{self.zenoh_port}"
+        return self.external_router or f"tcp/127.0.0.1:{self.zenoh_port}"
 
     @property
     def can_channel(self) -> str:
@@ -162,7 +165,10 @@ class HealthWatch:
 async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:  # noqa: ANN001
     """Run the stack until SIGINT/SIGTERM; returns the exit code."""
     loop = asyncio.get_running_loop()
-    router = open_session(router_settings([plan.endpoint]))
+    if plan.external_router:  # a client like the services: the router may stop and come back
+        router = open_session(ZenohSettings(mode="client", connect=[plan.endpoint]))
+    else:
+        router = open_session(router_settings([plan.endpoint]))
     keys = Keys(plan.robot_id)
     expected = set(plan.services())
     ready = asyncio.Event()
@@ -184,7 +190,8 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         loop.add_signal_handler(sig, stop.set)
     code = 0
     try:
-        announce(f"zagv: router on {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
+        where = "external router at" if plan.external_router else "router on"
+        announce(f"zagv: {where} {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
         await loop.run_in_executor(None, render_world_map, plan)
         for spec in plan.children():
             supervisor.add(spec)
@@ -226,6 +233,9 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mapping", action="store_true", help="start localization in SLAM (mapping) mode")
     p.add_argument("--robot-id", default="r1", help="robot id (default %(default)s)")
     p.add_argument("--zenoh-port", type=int, default=7447, help="router TCP port on 127.0.0.1 (default %(default)s)")
+    p.add_argument("--external-router", metavar="ENDPOINT",
+                   help="connect everything to this running router (e.g. tcp/127.0.0.1:7447 of `zagv router`) "
+                        "instead of embedding one; --zenoh-port is then unused")
     p.add_argument("--can-port", type=int, default=54701, help="simulated CAN bus port (default %(default)s)")
     p.add_argument("--lidar-port", type=int, default=2111, help="emulated LMS111 port (default %(default)s)")
     p.add_argument("--http-port", type=int, default=8080, help="HMI port (default %(default)s)")
@@ -243,6 +253,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         speed=args.speed, headless=args.headless, mapping=args.mapping, zenoh_port=args.zenoh_port,
         can_port=args.can_port, lidar_port=args.lidar_port, http_port=args.http_port, run_dir=run_dir,
         extra_sets=args.set, only=args.only.split(",") if args.only else None,
+        external_router=getattr(args, "external_router", None),
     )
 
 
