@@ -1,0 +1,202 @@
+"""SIGKILL of each service during a navigation goal (sim, drive, lidar, localization, nav under ``zagv up``).
+
+Every killed service is restarted by the supervisor. The robot never drives blind: without fresh scans or poses it
+stops (ground-truth speed ~0) within the pose timeout and the deceleration, or nav reports the goal failed or
+recovering; afterwards the goal resumes or ends with a reason. Killing nav stops the robot through the drive's
+cmd_vel timeout; killing drive stops it through the motor controllers' watchdog.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from proto import codec
+from proto.messages import (
+    CancelRequest,
+    Empty,
+    GoalReply,
+    GoalRequest,
+    GroundTruth,
+    InitialPoseRequest,
+    NavStatus,
+    Pose2D,
+    PoseWithCovariance,
+    Reply,
+    TeleportRequest,
+)
+from proto.registry import TOPICS
+from services.cli.stack_process import Stack
+from services.cli.up import service_available
+from tests.support.waiting import wait_for_sync
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow,
+              pytest.mark.skipif(not service_available("nav"), reason="needs the nav service")]
+
+SERVICES = ["sim", "drive", "lidar", "localization", "nav"]
+START = (1.0, 3.2, 0.0)  # corridor world
+EAST, WEST = (12.0, 3.2, 0.0), (2.0, 3.2, math.pi)
+STILL_MPS = 0.01
+POSE_TIMEOUT_S = 2.0  # nav.pose_timeout_s (sim s)
+SPEED = 1.0
+
+
+class Navigator:
+    """Goals in, ``nav/status`` and ``sim/ground_truth`` (with its sim stamps) out."""
+
+    def __init__(self, stack: Stack) -> None:
+        self.stack = stack
+        self.session = stack.session()
+        self.lock = threading.Lock()
+        self.status: NavStatus | None = None
+        self.status_log: list[NavStatus] = []
+        self.truth: GroundTruth | None = None
+        self.truth_log: list[GroundTruth] = []
+        self.pose: PoseWithCovariance | None = None
+        self.pose_log: list[PoseWithCovariance] = []
+        self.session.declare_subscriber(stack.keys("pose"), self._on(PoseWithCovariance, "pose"))
+        self.session.declare_subscriber(stack.keys("nav/status"), self._on(NavStatus, "status"))
+        self.session.declare_subscriber(stack.keys("sim/ground_truth"), self._on(GroundTruth, "truth"))
+
+    def _on(self, t: type, attr: str):  # noqa: ANN202
+        def cb(sample) -> None:  # noqa: ANN001
+            msg = codec.decode_as(t, sample.payload.to_bytes())
+            with self.lock:
+                setattr(self, attr, msg)
+                getattr(self, f"{attr}_log").append(msg)
+        return cb
+
+    def query(self, name: str, request, reply_type: type):  # noqa: ANN001, ANN201
+        replies = list(self.session.get(self.stack.keys(name), payload=codec.encode(request), timeout=10.0))
+        assert replies and replies[0].ok is not None, f"{name} did not answer"
+        return codec.decode_as(reply_type, replies[0].ok.payload.to_bytes())
+
+    def wait_sim(self, sim_t: float) -> None:
+        wait_for_sync(lambda: self.truth.stamp >= sim_t, timeout_s=(sim_t - self.truth.stamp) / SPEED * 4 + 10)
+
+    def speed(self) -> float:
+        t = self.truth.twist
+        return math.hypot(t.vx, t.vy)
+
+    def place(self, pose: tuple[float, float, float]) -> None:
+        p = Pose2D(x=pose[0], y=pose[1], theta=pose[2])
+        assert self.query("sim/teleport", TeleportRequest(pose=p), Reply).ok
+        cov = [0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]
+        wait_for_sync(lambda: math.hypot(self.truth.pose.x - pose[0], self.truth.pose.y - pose[1]) < 0.01,
+                      timeout_s=10, message="the teleport never showed in sim/ground_truth")
+        for _ in range(6):
+            assert self.query("localization/initial_pose", InitialPoseRequest(pose=p, covariance=cov), Reply).ok
+            count = len(self.pose_log)
+
+            def localized() -> bool:
+                e = self.pose
+                return len(self.pose_log) > count and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1  # noqa: B023
+
+            try:
+                wait_for_sync(localized, timeout_s=10)
+                return
+            except AssertionError:
+                continue
+        raise AssertionError(f"localization never reported a pose near {pose}")
+
+    def goal(self, pose: tuple[float, float, float], goal_id: str) -> None:
+        request = GoalRequest(pose=Pose2D(x=pose[0], y=pose[1], theta=pose[2]), id=goal_id)
+
+        def accepted() -> bool:
+            reply = self.query("nav/goal", request, GoalReply)
+            if not reply.accepted and "no robot pose" in reply.reason:
+                # a restarted nav has no pose until localization publishes one, which it does after motion or
+                # on this request (nav does not fetch localization's latched pose when it starts)
+                self.query("localization/nomotion", Empty(), Reply)
+                return False
+            assert reply.accepted, reply.reason
+            return True
+
+        wait_for_sync(accepted, timeout_s=30, poll_s=0.5, message="nav never had a robot pose for the goal")
+        wait_for_sync(lambda: self.status and self.status.goal_id == goal_id and self.status.state == "driving"
+                      and self.speed() > 0.1, timeout_s=60, message=f"goal {goal_id} never got going: {self.status}")
+
+
+@pytest.fixture(scope="module")
+def nav(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Navigator]:
+    stack = Stack(tmp_path_factory.mktemp("nav_faults"), SERVICES, world="corridor", speed=SPEED)
+    try:
+        stack.start()
+        n = Navigator(stack)
+        wait_for_sync(lambda: n.truth is not None and n.status is not None, timeout_s=60)
+        n.place(START)
+        yield n
+    finally:
+        stack.stop()
+
+
+#: per killed service: the data it produces (None: none to wait for) and the sim s within which the robot must be
+#: still unless that data is back: nav's pose timeout for sensor data (then the deceleration), the drive's cmd_vel
+#: timeout for nav, the motor controllers' watchdog (1 s) for drive; plus 0.7 s deceleration and clock slack
+BOUNDS = {
+    "lidar": ("scan", POSE_TIMEOUT_S + 0.7 + 0.5),
+    "localization": ("tf/map_odom", POSE_TIMEOUT_S + 0.7 + 0.5),
+    "nav": (None, 0.2 + 0.7 + 0.5),
+    "drive": (None, 1.0 + 0.7 + 0.5),
+}
+
+
+@pytest.mark.parametrize("service", list(BOUNDS))
+def test_sigkill_during_goal_never_drives_blind(nav: Navigator, service: str, fault_figures) -> None:
+    n = nav
+    target = EAST if n.truth.pose.x < 7.0 else WEST
+    goal_id = f"kill-{service}"
+    n.goal(target, goal_id)
+    stack = n.stack
+    produces, bound_s = BOUNDS[service]
+    stamps: list[float] = []
+    if produces:
+        sub = n.session.declare_subscriber(stack.keys(produces), lambda s: stamps.append(
+            codec.decode_as(TOPICS[produces], s.payload.to_bytes()).stamp))
+    mark = stack.line_count()
+    with n.lock:
+        first_truth = len(n.truth_log)
+        killed_sim = n.truth.stamp
+    killed = time.monotonic()
+    os.kill(stack.pid(service), signal.SIGKILL)
+    n.wait_sim(killed_sim + bound_s + 0.5)
+    with n.lock:
+        stops = [g.stamp for g in n.truth_log[first_truth:] if math.hypot(g.twist.vx, g.twist.vy) < STILL_MPS]
+    stopped = stops[0] - killed_sim if stops else math.inf
+    fresh = [t for t in stamps if t > killed_sim + 0.1]  # later than anything the killed process had in flight
+    data_gap = fresh[0] - killed_sim if fresh else math.inf
+    if produces:
+        sub.undeclare()
+        fault_figures(f"{service}_killed_{produces.replace('/', '_')}_gap_sim", data_gap)
+    if stops:
+        fault_figures(f"{service}_killed_to_standstill_sim", stopped)
+    assert stopped <= bound_s or data_gap <= bound_s, (
+        f"after killing {service} the robot drove on for {bound_s} sim s without fresh {produces or 'commands'}")
+
+    stack.wait_line(rf"^zagv: {service} healthy again", timeout_s=60, after=mark)
+    fault_figures(f"{service}_killed_during_goal_to_healthy_wall", time.monotonic() - killed)
+
+    def settled() -> str:
+        st = n.status
+        if service == "nav":  # the goal died with nav: the new instance is idle and commands nothing
+            return "idle" if st.state == "idle" and n.speed() < STILL_MPS else ""
+        if st.goal_id != goal_id:
+            return ""
+        if st.state == "succeeded" or (st.state == "driving" and n.speed() > 0.05):
+            return st.state
+        if st.state == "failed" and st.error:
+            return f"failed: {st.error}"
+        return ""
+
+    outcome = wait_for_sync(settled, timeout_s=90, message=f"after {service} came back: {n.status}")
+    print(f"\n{service} killed during goal {goal_id}: {outcome}")
+    # leave the robot at rest for the next case
+    if n.status.state not in ("succeeded", "failed", "canceled", "idle"):
+        assert n.query("nav/cancel", CancelRequest(goal_id=goal_id), Reply).ok
+    wait_for_sync(lambda: n.speed() < STILL_MPS, timeout_s=30)
