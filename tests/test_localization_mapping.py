@@ -1,0 +1,215 @@
+"""Mapping mode: the occupied-cell F1 used to score maps, and live SLAM in the simulator (sim + lidar +
+localization via ``zagv up --mapping``): build the corridor map, save it, switch to AMCL on it.
+
+The robot is moved by ``sim/teleport`` in small steps (4 cm / 0.04 rad every 40 ms, about 1 m/s) through the lobby
+and along the main corridor to x = 15 m and back to x = 6 m; the test publishes ``odom`` from ``sim/ground_truth``
+with a 1 % scale error. The saved map is compared with the ground truth rendered by ``services.sim.render_map`` in
+the explored part (x <= 15.5 m), aligned by the shared start pose and refined by a ±2 cell search.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from proto.messages import (
+    GroundTruth,
+    InitialPoseRequest,
+    ModeRequest,
+    Odometry,
+    Pose2D,
+    PoseWithCovariance,
+    SaveMapRequest,
+    TeleportRequest,
+    Transform2D,
+)
+from services.common.node import Node
+from services.localization.amcl import compose, wrap_angle
+from services.localization.map_io import FREE, OCCUPIED, load_map
+from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
+from services.localization.synthetic import route
+from tests.support.waiting import wait_for
+
+EXPLORED = (-2.5, -2.0, 15.5, 5.5)  # x_min, y_min, x_max, y_max (m): the lobby and the main corridor to x = 15 m
+MAPPING_ROUTE = [(0.0, 0.0, 0.0), (4.0, 0.1, 0.0), (4.0, 0.1, math.pi), (-1.0, 0.1, math.pi),
+                 (-1.0, 0.3, math.pi / 2), (0.0, 3.2, 0.0), (15.0, 3.2, 0.0), (15.0, 3.2, math.pi), (6.0, 3.2, math.pi)]
+
+
+# ------------------------------------------------------------------------------------------------ F1 (unit)
+
+def _box(shape: tuple[int, int], lo: tuple[int, int], hi: tuple[int, int]) -> np.ndarray:
+    """Boolean grid with the outline of the rectangle of cells lo..hi (row, col) set."""
+    g = np.zeros(shape, bool)
+    g[lo[0]:hi[0] + 1, [lo[1], hi[1]]] = True
+    g[[lo[0], hi[0]], lo[1]:hi[1] + 1] = True
+    return g
+
+
+def test_f1_is_one_for_identical_maps_and_tolerates_one_cell():
+    truth = _box((40, 60), (5, 5), (30, 50))
+    same = occupied_f1(truth, 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0))
+    assert same.precision == same.recall == same.f1 == 1.0
+    one_off = occupied_f1(np.roll(truth, 1, axis=1), 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0))
+    assert one_off.f1 == 1.0
+    three_off = occupied_f1(np.roll(truth, 3, axis=1), 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0))
+    assert three_off.f1 < 0.7  # the two long walls still match, the two short ones do not
+    strict = occupied_f1(np.roll(truth, 1, axis=1), 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0), tolerance_cells=0)
+    assert strict.f1 < 0.7
+
+
+def test_f1_counts_missing_and_spurious_cells():
+    truth = _box((40, 60), (5, 5), (30, 50))
+    half = truth.copy()
+    half[:, 28:] = False  # the built map saw only the west half
+    r = occupied_f1(half, 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0))
+    assert r.precision == 1.0 and 0.4 < r.recall < 0.6
+    noisy = truth.copy()
+    noisy[15:20, 20:30] = True  # 50 spurious cells in free space
+    r = occupied_f1(noisy, 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0))
+    assert r.recall == 1.0 and r.precision == pytest.approx(truth.sum() / noisy.sum())
+
+
+def test_alignment_search_recovers_a_small_shift_and_grids_may_differ():
+    truth = _box((40, 60), (5, 5), (30, 50))
+    shifted = np.roll(truth, 2, axis=0)  # built map 2 cells (0.1 m) north of the truth
+    assert occupied_f1(shifted, 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0)).f1 < 0.8
+    best = best_aligned_f1(shifted, 0.05, (0.0, 0.0), truth, 0.05, (0.0, 0.0), search_cells=3)
+    # within the 1-cell tolerance, the smallest shift that matches everything: 1 cell south
+    assert best.f1 == 1.0 and best.offset_xy_m == pytest.approx((0.0, -0.05))
+    # the same outline in a bigger grid with another origin
+    big = np.zeros((60, 80), bool)
+    big[10:50, 10:70] = truth
+    r = occupied_f1(big, 0.05, (-0.5, -0.5), truth, 0.05, (0.0, 0.0))
+    assert r.f1 == 1.0
+
+
+def test_surface_keeps_the_visible_boundary_and_region_limits_recall():
+    solid = np.ones((20, 20), bool)
+    solid[5:15, 5:15] = False
+    boundary = surface(solid, ~solid)
+    assert boundary.sum() == 4 * 12 - 4  # the ring around the 10 x 10 room, corners included
+    built = boundary.copy()
+    built[:, 10:] = False
+    r = occupied_f1(built, 1.0, (0.0, 0.0), boundary, 1.0, (0.0, 0.0), region=(0.0, 0.0, 9.9, 20.0))
+    assert r.f1 == 1.0
+    built_free = np.zeros_like(solid)
+    built_free[5:15, 5:8] = True  # only the west strip was seen free: the east walls were not observed
+    r = occupied_f1(built, 1.0, (0.0, 0.0), boundary, 1.0, (0.0, 0.0), built_free=built_free, observed_cells=1)
+    assert r.recall == 1.0
+
+
+# ------------------------------------------------------------------------------------------------ simulator
+
+class Harness:
+    """Odometry from the ground truth (1 % scale error), teleport stepping, the SLAM pose error."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.pub_odom = node.publisher("odom")
+        self.odom = (0.0, 0.0, 0.0)
+        self.last_truth: tuple[float, float, float] | None = None
+        self.map_odom: Transform2D | None = None
+        self.pose: PoseWithCovariance | None = None
+        self.errors: list[float] = []
+        node.subscribe("sim/ground_truth", self.on_truth)
+        node.subscribe("tf/map_odom", self.on_tf)
+        node.subscribe("pose", lambda p: setattr(self, "pose", p))
+
+    def on_tf(self, tf: Transform2D) -> None:
+        self.map_odom = tf
+
+    def on_truth(self, gt: GroundTruth) -> None:
+        true = (gt.pose.x, gt.pose.y, gt.pose.theta)
+        if self.last_truth is not None:
+            x0, y0, t0 = self.last_truth
+            dx, dy = true[0] - x0, true[1] - y0
+            c, s = math.cos(t0), math.sin(t0)
+            body = (1.01 * (c * dx + s * dy), 1.01 * (-s * dx + c * dy), float(wrap_angle(true[2] - t0)) * 1.01)
+            self.odom = compose(self.odom, body)
+        self.last_truth = true
+        self.pub_odom.put(Odometry(stamp=gt.stamp, pose=Pose2D(x=self.odom[0], y=self.odom[1], theta=self.odom[2])))
+        if self.map_odom is not None:
+            tf = self.map_odom
+            est = compose((tf.x, tf.y, tf.theta), self.odom)
+            self.errors.append(math.hypot(est[0] - true[0], est[1] - true[1]))
+
+    async def drive(self, waypoints: list[tuple[float, float, float]]) -> None:
+        for x, y, th in route(waypoints, step_m=0.04, step_rad=0.04):
+            reply = await self.node.query("sim/teleport", TeleportRequest(pose=Pose2D(x=x, y=y, theta=th)))
+            assert reply.ok, reply.message
+            await asyncio.sleep(0.04)
+
+
+def ground_truth(tmp_path: Path):
+    out = tmp_path / "truth" / "corridor"
+    subprocess.run([sys.executable, "-m", "services.sim.render_map", "--world", "corridor", "--out", str(out)],
+                   check=True, capture_output=True)
+    return load_map(out.with_suffix(".yaml"))
+
+
+def map_f1(built_yaml: Path, truth) -> object:
+    built = load_map(built_yaml)
+    truth_occ = surface(truth.data == OCCUPIED, truth.data == FREE)
+    return best_aligned_f1(built.data >= 65, built.resolution, built.origin[:2], truth_occ, truth.resolution,
+                           truth.origin[:2], search_cells=2, region=EXPLORED, built_free=built.data == FREE)
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_path):
+    stack = stack_factory(services=["sim", "lidar", "localization"], world="corridor",
+                          extra_args=["--mapping"]).start()
+    node = Node("mapping-test", stack.session(), stack.keys)
+    h = Harness(node)
+    try:
+        await wait_for(lambda: h.map_odom is not None, timeout_s=30, message="no tf/map_odom from mapping")
+        refused = await node.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=1.0, y=0.0)))
+        assert not refused.ok and "mapping" in refused.message
+        started = asyncio.get_running_loop().time()
+        await h.drive(MAPPING_ROUTE)
+        drive_s = asyncio.get_running_loop().time() - started
+        errors = np.array(h.errors)
+        stats = await node.query_stats("localization") if hasattr(node, "query_stats") else None
+
+        bad = await node.query("localization/save_map", SaveMapRequest(name="../escape"))
+        assert not bad.ok and "name" in bad.message
+        saved = await node.query("localization/save_map", SaveMapRequest(name="corridor_built"))
+        assert saved.ok, saved.message
+        yaml_path = Path(saved.message)
+        assert yaml_path.name == "corridor_built.yaml" and yaml_path.with_suffix(".pgm").is_file()
+        assert yaml_path.parent == stack.run_dir / "maps"
+
+        agreement = map_f1(yaml_path, ground_truth(tmp_path))
+        print(f"\nmapped {drive_s:.0f} s of teleport driving; SLAM pose error RMS "
+              f"{float(np.sqrt(np.mean(errors ** 2))):.3f} m, max {errors.max():.3f} m; map vs ground truth "
+              f"(x <= 15.5 m): precision {agreement.precision:.3f}, recall {agreement.recall:.3f}, "
+              f"F1 {agreement.f1:.3f} at offset {agreement.offset_xy_m}; stats {stats}")
+        assert agreement.f1 >= 0.9
+        assert float(np.sqrt(np.mean(errors ** 2))) < 0.1
+
+        missing = await node.query("localization/mode", ModeRequest(mode="navigation", map_yaml="no_such_map"))
+        assert not missing.ok
+        switched = await node.query("localization/mode", ModeRequest(mode="navigation", map_yaml="corridor_built"))
+        assert switched.ok, switched.message
+        h.errors.clear()
+        h.map_odom = None
+        await h.drive([(6.0, 3.2, math.pi), (2.0, 3.2, math.pi)])
+        assert h.map_odom is not None, "AMCL on the saved map published no tf/map_odom"
+        nav_errors = np.array(h.errors)
+        print(f"AMCL on the built map: RMS {float(np.sqrt(np.mean(nav_errors ** 2))):.3f} m over 4 m")
+        assert float(np.sqrt(np.mean(nav_errors ** 2))) < 0.1
+        ok = await node.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=2.0, y=3.2,
+                                                                                          theta=math.pi)))
+        assert ok.ok, ok.message
+        not_mapping = await node.query("localization/save_map", SaveMapRequest(name="again"))
+        assert not not_mapping.ok
+        back = await node.query("localization/mode", ModeRequest(mode="mapping"))
+        assert back.ok, back.message
+    finally:
+        node.close()
