@@ -1,5 +1,6 @@
 """Mapping mode: the occupied-cell F1 used to score maps, and live SLAM in the simulator (sim + lidar +
-localization via ``zagv up --mapping``): build the corridor map, save it, switch to AMCL on it.
+localization + hmi_api via ``zagv up --mapping``): build the corridor map, save it, switch to AMCL on it, and the
+same from the HMI's mapping endpoints.
 
 The robot is moved by ``sim/teleport`` in small steps (4 cm / 0.04 rad every 40 ms, about 1 m/s) through the lobby
 and along the main corridor to x = 15 m and back to x = 6 m; the test publishes ``odom`` from ``sim/ground_truth``
@@ -10,6 +11,7 @@ the explored part (x <= 15.5 m), aligned by the shared start pose and refined by
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import subprocess
 import sys
@@ -34,6 +36,7 @@ from services.localization.amcl import compose, wrap_angle
 from services.localization.map_io import FREE, OCCUPIED, load_map
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
 from services.localization.synthetic import route
+from tests.support.hmi import HmiClient, base_url, password_of
 from tests.support.waiting import wait_for
 
 EXPLORED = (-2.5, -2.0, 15.5, 5.5)  # x_min, y_min, x_max, y_max (m): the lobby and the main corridor to x = 15 m
@@ -141,9 +144,17 @@ class Harness:
 
     async def drive(self, waypoints: list[tuple[float, float, float]]) -> None:
         for x, y, th in route(waypoints, step_m=0.04, step_rad=0.04):
-            reply = await self.node.query("sim/teleport", TeleportRequest(pose=Pose2D(x=x, y=y, theta=th)))
+            reply = await self.node.query("sim/teleport", TeleportRequest(pose=Pose2D(x=x, y=y, theta=th)),
+                                         timeout_s=10.0)  # generous: the shared machine may be loaded
             assert reply.ok, reply.message
             await asyncio.sleep(0.04)
+
+
+def service_stats(stack, service: str) -> dict:
+    for reply in stack.session().get(stack.keys(f"@stats/{service}"), timeout=2.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    raise AssertionError(f"no stats from {service}")
 
 
 def ground_truth(tmp_path: Path):
@@ -163,7 +174,7 @@ def map_f1(built_yaml: Path, truth) -> object:
 @pytest.mark.integration
 @pytest.mark.slow
 async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_path):
-    stack = stack_factory(services=["sim", "lidar", "localization"], world="corridor",
+    stack = stack_factory(services=["sim", "lidar", "localization", "hmi_api"], world="corridor",
                           extra_args=["--mapping"]).start()
     node = Node("mapping-test", stack.session(), stack.keys)
     h = Harness(node)
@@ -175,7 +186,8 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         await h.drive(MAPPING_ROUTE)
         drive_s = asyncio.get_running_loop().time() - started
         errors = np.array(h.errors)
-        stats = await node.query_stats("localization") if hasattr(node, "query_stats") else None
+        stats = service_stats(stack, "localization")["mapping"]
+        assert stats["processed"] > 100 and stats["skipped"] > stats["processed"]  # the motion gates let few through
 
         bad = await node.query("localization/save_map", SaveMapRequest(name="../escape"))
         assert not bad.ok and "name" in bad.message
@@ -209,7 +221,21 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         assert ok.ok, ok.message
         not_mapping = await node.query("localization/save_map", SaveMapRequest(name="again"))
         assert not not_mapping.ok
-        back = await node.query("localization/mode", ModeRequest(mode="mapping"))
-        assert back.ok, back.message
+
+        # the same workflow from the HMI: start mapping, save under a name, navigate on it
+        with HmiClient(base_url(stack)) as client:
+            assert client.post("/api/mapping/start").status_code == 401
+            client.login(password_of(stack))
+            r = client.post("/api/mapping/start")
+            assert r.status_code == 200 and "mapping" in r.json()["message"], r.text
+            await h.drive([(2.0, 3.2, math.pi), (2.0, 3.2, 0.0), (3.0, 3.2, 0.0)])
+            assert client.post("/api/mapping/save", json={"name": "a/b"}).status_code == 422
+            r = client.post("/api/mapping/save", json={"name": "from_hmi"})
+            assert r.status_code == 200 and r.json()["message"].endswith("from_hmi.yaml"), r.text
+            r = client.post("/api/mapping/stop", json={"map": "no_such_map"})
+            assert r.status_code == 409, r.text
+            r = client.post("/api/mapping/stop", json={"map": "from_hmi"})
+            assert r.status_code == 200 and "navigation" in r.json()["message"], r.text
+            assert client.post("/api/mapping/save", json={"name": "x"}).status_code == 409  # not mapping
     finally:
         node.close()

@@ -74,6 +74,7 @@ class MappingNode:
                                  min_turn_rad=cfg.mapping_min_turn_rad)
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
+        self._newest_scan: LaserScan | None = None
         self.stats: dict[str, float] = {"scans": 0, "processed": 0, "skipped": 0, "bad_scans": 0,
                                         "keyframes": 0, "loop_closures": 0, "cpu_ms_per_processed_scan": 0.0,
                                         "cpu_ms_max": 0.0, "render_ms": 0.0}
@@ -101,7 +102,22 @@ class MappingNode:
             self._process(scan)
 
     def on_scan(self, msg: LaserScan) -> None:
+        """Keeps only the newest scan and handles it once the event loop has delivered what was queued before it:
+        when mapping falls behind (a loaded machine, a keyframe with a loop search), older scans are dropped
+        instead of queueing up."""
         self.stats["scans"] += 1
+        if self._newest_scan is not None:
+            self.stats["dropped_behind"] = self.stats.get("dropped_behind", 0) + 1
+        else:
+            asyncio.get_running_loop().call_soon(self._take_newest_scan)
+        self._newest_scan = msg
+
+    def _take_newest_scan(self) -> None:
+        msg, self._newest_scan = self._newest_scan, None
+        if msg is not None:
+            self._handle_scan(msg)
+
+    def _handle_scan(self, msg: LaserScan) -> None:
         if self.pending_scan is not None:
             scan, self.pending_scan = self.pending_scan, None
             self._process(scan)
@@ -156,6 +172,7 @@ class MappingNode:
             self._map_dirty = True
             self._publish_pose(scan.stamp)
         else:
+            self.mapper.skipped += 1
             self.stats["skipped"] = self.mapper.skipped
         self._publish_tf(scan.stamp)
         self.maybe_publish_map()
@@ -188,6 +205,7 @@ class MappingNode:
         self.last_map = grid_to_map(grid)
         self.out.map.put(self.last_map.to_msg(stamp=now))
         self.stats["render_ms"] = round(1e3 * (time.thread_time() - t0), 1)
+        self.stats["full_renders"] = self.mapper.full_renders
         self._map_published_at = now
         self._map_dirty = False
 

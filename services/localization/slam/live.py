@@ -13,7 +13,25 @@ import numpy as np
 
 from .mapper import GraphSlam, SlamConfig
 from .occupancy import OccupancyGrid
-from .se2 import between, compose, inverse, wrap_angle
+from .se2 import between, compose, inverse, transform_points, wrap_angle
+
+
+def grow_to_cover(grid: OccupancyGrid, points: np.ndarray, margin_m: float = 5.0) -> OccupancyGrid:
+    """``grid`` itself when it holds ``points`` (N, 2) with a one-cell border, else a larger copy (``margin_m`` more
+    on each side that had to grow) with the old log-odds in place."""
+    res = grid.resolution_m
+    h, w = grid.log_odds.shape
+    lo_have = grid.origin_xy_m
+    hi_have = grid.origin_xy_m + np.array([w, h]) * res
+    lo_need, hi_need = points.min(axis=0) - res, points.max(axis=0) + res
+    if np.all(lo_need >= lo_have) and np.all(hi_need <= hi_have):
+        return grid
+    grow_lo = np.where(lo_need < lo_have, np.ceil((lo_have - lo_need + margin_m) / res), 0).astype(int)
+    grow_hi = np.where(hi_need > hi_have, np.ceil((hi_need - hi_have + margin_m) / res), 0).astype(int)
+    log_odds = np.zeros((h + grow_lo[1] + grow_hi[1], w + grow_lo[0] + grow_hi[0]), np.float32)
+    log_odds[grow_lo[1]:grow_lo[1] + h, grow_lo[0]:grow_lo[0] + w] = grid.log_odds
+    return OccupancyGrid(log_odds, grid.origin_xy_m - grow_lo * res, res, grid.log_odds_occupied,
+                         grid.log_odds_free, grid.clamp)
 
 
 class LiveMapper:
@@ -34,6 +52,10 @@ class LiveMapper:
         self.skipped = 0
         self._optimized_at_keyframes = 0
         self._loops_at_optimize = 0
+        self._grid: OccupancyGrid | None = None
+        self._rendered_poses: np.ndarray | None = None
+        self.rebuild_angle_rad = 0.005
+        self.full_renders = 0
 
     def moved_enough(self, odom_pose: np.ndarray) -> bool:
         if self._last_odom is None:
@@ -70,7 +92,33 @@ class LiveMapper:
         return compose(self.map_odom, np.asarray(odom_pose, float))
 
     def render(self) -> OccupancyGrid | None:
-        """Log-odds grid from every keyframe at its optimised pose (None before the first scan)."""
-        if self.slam.n_keyframes == 0:
+        """Log-odds grid from every keyframe at its optimised pose (None before the first scan).
+
+        Incremental: new keyframes are inserted into the last grid (grown when they reach past it); the grid is
+        rebuilt from scratch only when optimisation moved an inserted keyframe by more than half a cell or
+        ``rebuild_angle_rad``."""
+        slam = self.slam
+        n = slam.n_keyframes
+        if n == 0:
             return None
-        return self.slam.render_map()
+        poses = slam.graph.poses()
+        res = slam.config.resolution_m
+        if self._grid is not None and self._rendered_poses is not None:
+            old = self._rendered_poses
+            moved = np.hypot(*(poses[:len(old), :2] - old[:, :2]).T)
+            turned = np.abs(wrap_angle(poses[:len(old), 2] - old[:, 2]))
+            if moved.max(initial=0.0) > 0.5 * res or turned.max(initial=0.0) > self.rebuild_angle_rad:
+                self._grid = None
+        if self._grid is None:
+            self._grid = slam.render_map()
+            self.full_renders += 1
+        else:
+            for k in range(len(self._rendered_poses), n):
+                kf = slam._keyframes[k]
+                if not len(kf.map_points):
+                    continue
+                world = transform_points(poses[k], kf.map_points)
+                self._grid = grow_to_cover(self._grid, np.vstack([world, poses[k:k + 1, :2]]))
+                self._grid.insert_scan(poses[k], kf.sensor_origin_xy_m, kf.map_points)
+        self._rendered_poses = poses.copy()
+        return self._grid
