@@ -30,6 +30,7 @@ from proto.messages import (
     SaveMapRequest,
     TeleportRequest,
     Transform2D,
+    Twist2D,
 )
 from services.common.node import Node
 from services.localization.amcl import compose, wrap_angle
@@ -238,4 +239,56 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
             assert r.status_code == 200 and "navigation" in r.json()["message"], r.text
             assert client.post("/api/mapping/save", json={"name": "x"}).status_code == 409  # not mapping
     finally:
+        node.close()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+async def test_map_the_corridor_driving_through_the_drive_service(stack_factory, tmp_path):
+    """sim + drive + lidar + localization (``--mapping``, sim at 3x): the robot is driven by cmd_vel (a test-side P
+    controller on the ground truth within the Table 2 limits) through the lobby and along the main corridor to
+    x = 15 m on the drive's own odometry; the saved map is scored against the ground truth."""
+    from services.common.robot import RobotSpec
+
+    stack = stack_factory(services=["sim", "drive", "lidar", "localization"], world="corridor", speed=3.0,
+                          extra_args=["--mapping"]).start()
+    node = Node("mapping-drive-test", stack.session(), stack.keys)
+    spec = RobotSpec()
+    state: dict = {"tf": None, "truth": None}
+    node.subscribe("sim/ground_truth", lambda gt: state.__setitem__("truth", gt))
+    node.subscribe("tf/map_odom", lambda tf: state.__setitem__("tf", tf))
+    cmd = node.publisher("cmd_vel")
+    loop = asyncio.get_running_loop()
+    try:
+        await wait_for(lambda: state["tf"] is not None and state["truth"] is not None, timeout_s=60,
+                       message="no tf/map_odom from mapping or no ground truth")
+        started = loop.time()
+        for goal in MAPPING_ROUTE[1:7]:
+            deadline = loop.time() + 240.0
+            while True:
+                p = state["truth"].pose
+                dx, dy = goal[0] - p.x, goal[1] - p.y
+                dth = float(wrap_angle(goal[2] - p.theta))
+                if math.hypot(dx, dy) < 0.05 and abs(dth) < 0.05:
+                    break
+                assert loop.time() < deadline, f"goal {goal} not reached: at ({p.x:.2f}, {p.y:.2f}, {p.theta:.2f})"
+                c, s = math.cos(p.theta), math.sin(p.theta)
+                bx, by = c * dx + s * dy, -s * dx + c * dy  # the error in the body frame
+                scale = min(1.0, (spec.vx_max_mps if bx > 0 else -spec.vx_min_mps) / max(abs(bx), 1e-9),
+                            spec.vy_max_mps / max(abs(by), 1e-9))
+                vx, vy, wz = spec.clamp_twist(scale * bx, scale * by, 1.5 * dth)
+                cmd.put(Twist2D(vx=vx, vy=vy, wz=wz))
+                await asyncio.sleep(0.05)
+        cmd.put(Twist2D())
+        drive_s = loop.time() - started
+        assert not state["truth"].collided
+        saved = await node.query("localization/save_map", SaveMapRequest(name="driven"), timeout_s=10.0)
+        assert saved.ok, saved.message
+        agreement = map_f1(Path(saved.message), ground_truth(tmp_path))
+        stats = service_stats(stack, "localization")["mapping"]
+        print(f"\ndriven mapping to x = 15 m in {drive_s:.0f} s wall (sim 3x): precision {agreement.precision:.3f}, "
+              f"recall {agreement.recall:.3f}, F1 {agreement.f1:.3f} at offset {agreement.offset_xy_m}; {stats}")
+        assert agreement.f1 >= 0.9
+    finally:
+        cmd.put(Twist2D())
         node.close()
