@@ -2,10 +2,12 @@
 localization + hmi_api via ``zagv up --mapping``): build the corridor map, save it, switch to AMCL on it, and the
 same from the HMI's mapping endpoints.
 
-The robot is moved by ``sim/teleport`` in small steps (4 cm / 0.04 rad every 40 ms, about 1 m/s) through the lobby
-and along the main corridor to x = 15 m and back to x = 6 m; the test publishes ``odom`` from ``sim/ground_truth``
-with a 1 % scale error. The saved map is compared with the ground truth rendered by ``services.sim.render_map`` in
-the explored part (x <= 15.5 m), aligned by the shared start pose and refined by a ±2 cell search.
+Workflow test: the robot is moved by ``sim/teleport`` in small steps (4 cm / 0.04 rad every 40 ms, about 1 m/s)
+through the lobby and along the main corridor to x = 6 m; the test publishes ``odom`` from ``sim/ground_truth`` with
+a 1 % scale error. Acceptance test: the robot is driven by ``cmd_vel`` through the drive service through the lobby and
+along the main corridor to x = 15 m. Saved maps are compared with the ground truth rendered by
+``services.sim.render_map`` in the explored part, aligned by the shared start pose and refined by a ±2 cell search;
+ground-truth walls count where the built map saw free space next to them.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from tests.support.hmi import HmiClient, base_url, password_of
 from tests.support.waiting import wait_for
 
 EXPLORED = (-2.5, -2.0, 15.5, 5.5)  # x_min, y_min, x_max, y_max (m): the lobby and the main corridor to x = 15 m
+LOBBY = (-2.5, -2.0, 6.5, 5.5)  # the lobby and the corridor to x = 6 m
 MAPPING_ROUTE = [(0.0, 0.0, 0.0), (4.0, 0.1, 0.0), (4.0, 0.1, math.pi), (-1.0, 0.1, math.pi),
                  (-1.0, 0.3, math.pi / 2), (0.0, 3.2, 0.0), (15.0, 3.2, 0.0), (15.0, 3.2, math.pi), (6.0, 3.2, math.pi)]
 
@@ -165,11 +168,11 @@ def ground_truth(tmp_path: Path):
     return load_map(out.with_suffix(".yaml"))
 
 
-def map_f1(built_yaml: Path, truth) -> object:
+def map_f1(built_yaml: Path, truth, region: tuple[float, float, float, float] = EXPLORED) -> object:
     built = load_map(built_yaml)
     truth_occ = surface(truth.data == OCCUPIED, truth.data == FREE)
     return best_aligned_f1(built.data >= 65, built.resolution, built.origin[:2], truth_occ, truth.resolution,
-                           truth.origin[:2], search_cells=2, region=EXPLORED, built_free=built.data == FREE)
+                           truth.origin[:2], search_cells=2, region=region, built_free=built.data == FREE)
 
 
 @pytest.mark.integration
@@ -184,11 +187,11 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         refused = await node.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=1.0, y=0.0)))
         assert not refused.ok and "mapping" in refused.message
         started = asyncio.get_running_loop().time()
-        await h.drive(MAPPING_ROUTE)
+        await h.drive(MAPPING_ROUTE[:6] + [(6.0, 3.2, 0.0)])  # the lobby and the corridor to x = 6 m
         drive_s = asyncio.get_running_loop().time() - started
         errors = np.array(h.errors)
         stats = service_stats(stack, "localization")["mapping"]
-        assert stats["processed"] > 100 and stats["skipped"] > stats["processed"]  # the motion gates let few through
+        assert stats["processed"] > 50 and stats["skipped"] > stats["processed"]  # the motion gates let few through
 
         bad = await node.query("localization/save_map", SaveMapRequest(name="../escape"))
         assert not bad.ok and "name" in bad.message
@@ -198,10 +201,10 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         assert yaml_path.name == "corridor_built.yaml" and yaml_path.with_suffix(".pgm").is_file()
         assert yaml_path.parent == stack.run_dir / "maps"
 
-        agreement = map_f1(yaml_path, ground_truth(tmp_path))
+        agreement = map_f1(yaml_path, ground_truth(tmp_path), region=LOBBY)
         print(f"\nmapped {drive_s:.0f} s of teleport driving; SLAM pose error RMS "
               f"{float(np.sqrt(np.mean(errors ** 2))):.3f} m, max {errors.max():.3f} m; map vs ground truth "
-              f"(x <= 15.5 m): precision {agreement.precision:.3f}, recall {agreement.recall:.3f}, "
+              f"(x <= 6.5 m): precision {agreement.precision:.3f}, recall {agreement.recall:.3f}, "
               f"F1 {agreement.f1:.3f} at offset {agreement.offset_xy_m}; stats {stats}")
         assert agreement.f1 >= 0.9
         assert float(np.sqrt(np.mean(errors ** 2))) < 0.15  # teleport steps and scan latency add a few cm
@@ -212,7 +215,7 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         assert switched.ok, switched.message
         h.errors.clear()
         h.map_odom = None
-        await h.drive([(6.0, 3.2, math.pi), (2.0, 3.2, math.pi)])
+        await h.drive([(6.0, 3.2, 0.0), (6.0, 3.2, math.pi), (2.0, 3.2, math.pi)])
         assert h.map_odom is not None, "AMCL on the saved map published no tf/map_odom"
         nav_errors = np.array(h.errors)
         print(f"AMCL on the built map: RMS {float(np.sqrt(np.mean(nav_errors ** 2))):.3f} m over 4 m")
