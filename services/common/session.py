@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import zenoh
 
@@ -24,6 +25,13 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     elif settings.mode != "client":
         # a peer/router listens only where told to; never on every interface by default
         conf.insert_json5("listen/endpoints", json.dumps([]))
+    # extra json5 keys ([zenoh.options] table, then $ZAGV_ZENOH_OPTIONS as a JSON object for a whole stack)
+    extra = dict(settings.options)
+    extra.update(json.loads(os.environ.get("ZAGV_ZENOH_OPTIONS", "{}")))
+    for key, value in extra.items():
+        if key.startswith("scouting/multicast"):
+            raise ValueError(f"zenoh option {key!r}: multicast scouting stays off (explicit endpoints only)")
+        conf.insert_json5(key, json.dumps(value))
     if settings.mode == "client":
         # keep retrying the router forever rather than failing at start when it is not up yet
         conf.insert_json5("connect/timeout_ms", "-1")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 import msgspec
 
@@ -18,6 +18,8 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
     connect: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     listen: list[str] = msgspec.field(default_factory=list)
     config_file: str = ""
+    #: extra zenoh config keys, e.g. {"transport/unicast/lowlatency": true}
+    options: dict[str, Any] = msgspec.field(default_factory=dict)
 
 
 class ClockSettings(msgspec.Struct, forbid_unknown_fields=True):

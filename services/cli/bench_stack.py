@@ -1,0 +1,97 @@
+"""Whole-stack benchmarks: footprint at 1x while the robot drives the corridor, and the sim's speed factor.
+
+``stack.cpu_cores`` is the average number of cores used by all services (sim and its CAN bus excluded) over the
+measurement window, from /proc/<pid>/stat utime+stime; ``stack.rss_mb`` their total resident memory (VmRSS) at
+the end of the window. Each service's share is reported as ``stack.<service>.cpu_cores`` / ``.rss_mb``.
+``sim.speed_factor`` is simulated seconds per wall second with the simulator free-running while the robot drives.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from proto import codec
+from proto.messages import Clock, Pose2D, Waypoint, WaypointsRequest
+from services.cli.stack_process import Stack
+from services.common.bench import BenchRow
+from services.common.node import query
+
+#: corridor goals of the paper's Table 3, driven in order while measuring
+CORRIDOR_ROUTE = [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (13.6, 3.2, -1.0), (24.4, 3.5, 1.57)]
+SERVICES = ["drive", "lidar", "localization", "nav", "hmi_api"]
+TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process in s."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+
+
+def rss_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return 0.0
+
+
+async def _start_route(stack: Stack) -> None:
+    session = stack.session()
+    request = WaypointsRequest(waypoints=[Waypoint(pose=Pose2D(x=x, y=y, theta=t), id=str(i + 1))
+                                          for i, (x, y, t) in enumerate(CORRIDOR_ROUTE)])
+    reply = await query(session, stack.keys, "nav/waypoints", request, timeout_s=10.0)
+    if not reply.accepted:
+        raise RuntimeError(f"nav refused the benchmark route: {reply.reason}")
+
+
+def _running_services(stack: Stack) -> list[str]:
+    return [s for s in SERVICES if f"started {s} " in stack.output()]
+
+
+def bench_footprint(window_s: float = 60.0) -> list[BenchRow]:
+    with tempfile.TemporaryDirectory(prefix="zagv-bench-") as tmp, Stack(Path(tmp), None, speed=1.0) as stack:
+        services = _running_services(stack)
+        if "nav" in services:
+            asyncio.run(_start_route(stack))
+        pids = {s: stack.pid(s) for s in services}
+        cpu0 = {s: cpu_seconds(p) for s, p in pids.items()}
+        t0 = time.monotonic()
+        time.sleep(window_s)  # the measurement window
+        elapsed = time.monotonic() - t0
+        cores = {s: (cpu_seconds(p) - cpu0[s]) / elapsed for s, p in pids.items()}
+        rss = {s: rss_mb(p) for s, p in pids.items()}
+    rows = [
+        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.5"),
+        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 600"),
+    ]
+    for s in services:
+        rows.append(BenchRow(f"stack.{s}.cpu_cores", cores[s], "cores"))
+        rows.append(BenchRow(f"stack.{s}.rss_mb", rss[s], "MB"))
+    return rows
+
+
+def bench_sim_speed(window_s: float = 20.0) -> list[BenchRow]:
+    """Sim seconds per wall second with the whole stack up and the robot driving, sim free-running."""
+    with tempfile.TemporaryDirectory(prefix="zagv-bench-") as tmp, \
+            Stack(Path(tmp), None, speed=1000.0) as stack:
+        if "nav" in _running_services(stack):
+            asyncio.run(_start_route(stack))
+        session = stack.session()
+        stamps: list[tuple[float, float]] = []
+        sub = session.declare_subscriber(stack.keys("clock"), lambda s: stamps.append(
+            (time.monotonic(), codec.decode_as(Clock, s.payload.to_bytes()).stamp)))
+        time.sleep(window_s)  # the measurement window
+        sub.undeclare()
+    if len(stamps) < 2:
+        raise RuntimeError("no clock messages from the simulator")
+    (w0, s0), (w1, s1) = stamps[0], stamps[-1]
+    return [BenchRow("sim.speed_factor", (s1 - s0) / (w1 - w0), "x", ">= 5")]
+
+
+BENCHES = [("sim.speed_factor", bench_sim_speed), ("stack", bench_footprint)]
