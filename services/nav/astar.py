@@ -4,7 +4,7 @@ Search: a step from cell a to neighbour b costs ``step_m * (1 + cost_weight * c(
 resolution (straight) or sqrt(2) times it (diagonal) and c(b) the planning cost of b; cells >= 253 (inscribed,
 lethal) are impassable, 255 (unknown) too unless ``allow_unknown``. The octile distance in m is admissible and
 consistent because every step costs at least its length. Ties on f break towards the larger g (nearer the goal),
-then first-in-first-out, so equal inputs give equal paths.
+then towards the lower cell index, so equal inputs give equal paths.
 
 A start inside the inscribed zone (a robot that was pushed near a wall) may move through inscribed cells, but only
 those connected to the start through inscribed cells: it can leave, never enter.
@@ -24,10 +24,13 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from services.nav.costmap import INSCRIBED, LETHAL, MAX_NON_OBSTACLE, NO_INFORMATION, Costmap2D
 
 SQRT2 = math.sqrt(2.0)
+#: heap key f - TIE_BREAK * g: equal f expands the larger g first; costs at most a relative 1e-9 of optimality
+TIE_BREAK = 1e-9
 
 
 @dataclass
@@ -73,39 +76,37 @@ class AStarPlanner:
             return PlanResult(empty, error="goal is in unknown space (allow_unknown is off)")
 
         W = w + 2  # padded width
-        # padded cost grid: border lethal; impassable cells encoded as -1, others as step multiplier
+        # padded grid with a lethal border; blocked cells start out closed, so the loop needs one test per neighbour
         padded = np.full((h + 2, w + 2), LETHAL, dtype=np.uint8)
         padded[1:-1, 1:-1] = cost
         mult = 1.0 + self.cost_weight * np.minimum(padded, MAX_NON_OBSTACLE).astype(np.float64) / MAX_NON_OBSTACLE
         blocked = padded >= INSCRIBED
         if self.allow_unknown:
             blocked &= padded != NO_INFORMATION
-            mult[padded == NO_INFORMATION] = 1.0 + self.cost_weight
-        mult[blocked] = -1.0
-        inscribed = (padded == INSCRIBED).ravel().tolist()
+        if padded[si + 1, sj + 1] == INSCRIBED:
+            # escape: the inscribed cells connected to the start are passable (at the highest cost)
+            labels, _ = ndimage.label(padded == INSCRIBED, structure=np.ones((3, 3)))
+            escape = labels == labels[si + 1, sj + 1]
+            blocked &= ~escape
+            mult[escape] = 1.0 + self.cost_weight
         m = mult.ravel().tolist()
+        closed = bytearray(blocked.ravel().tobytes())
         start_n = (si + 1) * W + (sj + 1)
         goal_n = (gi + 1) * W + (gj + 1)
-        if inscribed[start_n]:
-            m[start_n] = 1.0 + self.cost_weight
-        start_in_inscribed = inscribed[start_n]
-
         n_cells = len(m)
         g = [math.inf] * n_cells
         parent = [-1] * n_cells
-        closed = bytearray(n_cells)
         g[start_n] = 0.0
         gx, gy = gj + 1, gi + 1
         offsets = ((1, 1.0), (-1, 1.0), (W, 1.0), (-W, 1.0), (W + 1, SQRT2), (W - 1, SQRT2), (-W + 1, SQRT2),
                    (-W - 1, SQRT2))
         k = SQRT2 - 2.0
-        heap = [(self._h(start_n, W, gx, gy, k), 0.0, 0, start_n)]
-        counter = 1
+        eps = TIE_BREAK
+        heap = [(0.0, start_n)]
         expanded = 0
         push, pop = heapq.heappush, heapq.heappop
-        escape_weight = 1.0 + self.cost_weight
         while heap:
-            _, neg_g, _, n = pop(heap)
+            _, n = pop(heap)
             if closed[n]:
                 continue
             closed[n] = 1
@@ -113,26 +114,23 @@ class AStarPlanner:
             if n == goal_n:
                 break
             gn = g[n]
-            n_inscribed = start_in_inscribed and inscribed[n]
             for off, step in offsets:
                 nb = n + off
                 if closed[nb]:
                     continue
-                mb = m[nb]
-                if mb < 0.0:
-                    if not (n_inscribed and inscribed[nb]):
-                        continue
-                    mb = escape_weight
-                ng = gn + step * mb
+                ng = gn + step * m[nb]
                 if ng < g[nb]:
                     g[nb] = ng
                     parent[nb] = n
-                    x, y = nb % W, nb // W
-                    dx, dy = abs(x - gx), abs(y - gy)
-                    hh = dx + dy + k * (dx if dx < dy else dy)
-                    push(heap, (ng + hh, -ng, counter, nb))
-                    counter += 1
-        if not closed[goal_n]:
+                    y, x = divmod(nb, W)
+                    dx = x - gx
+                    dy = y - gy
+                    if dx < 0:
+                        dx = -dx
+                    if dy < 0:
+                        dy = -dy
+                    push(heap, (ng + dx + dy + k * (dx if dx < dy else dy) - eps * ng, nb))
+        if g[goal_n] == math.inf or not closed[goal_n]:
             return PlanResult(empty, expanded=expanded,
                               error=f"no path: the goal is not reachable from the start ({expanded} cells searched)")
         cells = []
@@ -142,11 +140,6 @@ class AStarPlanner:
             n = parent[n]
         cells.reverse()
         return PlanResult(np.asarray(cells, dtype=np.int64), cost=g[goal_n] * resolution, expanded=expanded)
-
-    @staticmethod
-    def _h(n: int, W: int, gx: int, gy: int, k: float) -> float:
-        dx, dy = abs(n % W - gx), abs(n // W - gy)
-        return dx + dy + k * min(dx, dy)
 
 
 def line_cells(i0: int, j0: int, i1: int, j1: int) -> tuple[np.ndarray, np.ndarray]:
