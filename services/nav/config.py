@@ -33,11 +33,14 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     status_frequency_hz: float = 5.0
     footprint: list[list[float]] = msgspec.field(default_factory=list)  # polygon [[x, y], ...]; empty: circle
     footprint_radius_m: float = 0.0
+    # added to the footprint (Nav2's footprint_padding): covers the half-cell quantisation of the costmaps
+    footprint_padding_m: float = 0.05
     # planner
     cost_weight: float = 3.0
     clearance_m: float = 0.3
     allow_unknown: bool = False
     path_spacing_m: float = 0.05
+    min_replan_interval_s: float = 0.5  # immediate replans (blocked path) at most this often
     # goal checker (0: the robot's Table 2 tolerances)
     xy_goal_tolerance_m: float = 0.0
     yaw_goal_tolerance_rad: float = 0.0

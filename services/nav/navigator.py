@@ -103,8 +103,10 @@ class Navigator:
     def __init__(self, config: NavConfig, robot: RobotSpec) -> None:
         self.config = config
         self.robot = robot
-        radius = config.footprint_radius_m or robot.chassis_radius_m
-        poly = tuple((float(p[0]), float(p[1])) for p in config.footprint)
+        pad = config.footprint_padding_m
+        radius = (config.footprint_radius_m or robot.chassis_radius_m) + pad
+        poly = tuple((float(p[0]) + math.copysign(pad, p[0]), float(p[1]) + math.copysign(pad, p[1]))
+                     for p in config.footprint)
         self.footprint = Footprint(radius, poly)
         inscribed = self.footprint.inscribed_radius_m
 
@@ -346,7 +348,7 @@ class Navigator:
         g.last_plan_at = now
         if out.error:
             g.last_error = f"planning failed: {out.error}"
-            if len(g.path) == 0 or g.phase == "planning":
+            if len(g.path) == 0 or g.phase == "planning" or self._path_blocked():
                 self._start_recovery(now, pose, g.last_error)
             return
         first = len(g.path) == 0
@@ -445,7 +447,7 @@ class Navigator:
                 return self.cmd
             self.cmd = self._limit(*cmd)
             return self.cmd
-        if self._path_blocked():
+        if now - g.last_plan_at >= self.config.min_replan_interval_s and self._path_blocked():
             g.plan_now = True
         if g.phase == "rotating":
             self.state = "rotating"
