@@ -321,10 +321,11 @@ class InflationLayer:
         """Nav2's computeCost over distances ``d`` (m)."""
         d = np.asarray(d, dtype=np.float64)
         out = np.zeros(d.shape, dtype=np.uint8)
-        band = (d > self.inscribed_radius_m) & (d <= self.inflation_radius_m)
+        r_in, r_out = self.inscribed_radius_m + 1e-6, self.inflation_radius_m + 1e-6  # cell multiples: 6 * 0.05 > 0.3
+        band = (d > r_in) & (d <= r_out)
         out[band] = (MAX_NON_OBSTACLE * np.exp(-self.cost_scaling_factor * (d[band] - self.inscribed_radius_m)))\
             .astype(np.uint8)
-        out[d <= self.inscribed_radius_m] = INSCRIBED
+        out[d <= r_in] = INSCRIBED
         out[d <= 0.0] = LETHAL
         return out
 
