@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import threading
 
@@ -16,15 +17,26 @@ DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("router", help="run a Zenoh router (loopback by default; multicast scouting off)")
-    p.add_argument("--listen", action="append", help=f"endpoint to listen on (default {DEFAULT_LISTEN})")
+    p.add_argument("--listen", action="append",
+                   help=f"endpoint to listen on (default: the config file's listen/endpoints, else {DEFAULT_LISTEN})")
     p.add_argument("--config", help="zenoh json5 config file applied first (TLS, access control)")
     p.set_defaults(func=run)
+
+
+def config_listen_endpoints(path: str | None) -> list[str]:
+    """The ``listen/endpoints`` list of a zenoh json5 file ([] when absent or when it is zenoh's per-mode default)."""
+    if not path:
+        return []
+    import zenoh
+
+    endpoints = json.loads(zenoh.Config.from_file(path).get_json("listen/endpoints"))
+    return [str(e) for e in endpoints] if isinstance(endpoints, list) else []
 
 
 def run(args: argparse.Namespace) -> int:
     die_with_parent()
     setup_logging("router")
-    settings = router_settings(args.listen or [DEFAULT_LISTEN])
+    settings = router_settings(args.listen or config_listen_endpoints(args.config) or [DEFAULT_LISTEN])
     if args.config:
         settings = ZenohSettings(mode="router", connect=[], listen=settings.listen, config_file=args.config)
     session = open_session(settings)

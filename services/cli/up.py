@@ -189,6 +189,8 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         for spec in plan.children():
             supervisor.add(spec)
         started = time.monotonic()
+        if expected <= watch.alive:  # nothing to wait for (or every token already up)
+            ready.set()
         waiter = loop.create_task(ready.wait())
         stopper = loop.create_task(stop.wait())
         await asyncio.wait({waiter, stopper}, timeout=ready_timeout_s, return_when=asyncio.FIRST_COMPLETED)
