@@ -103,3 +103,13 @@ def test_wrap() -> None:
     assert wrap(-math.pi) == pytest.approx(math.pi)
     assert wrap(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
     assert np.allclose(wrap(np.array([0.1, 2 * math.pi + 0.1])), [0.1, 0.1])
+
+
+def test_escapes_from_the_inscribed_zone() -> None:
+    cm = free_map()
+    cm.cost[:, :22] = LETHAL  # wall up to x = 1.1 m
+    InflationLayer(0.3, 0.5, 3.0).update(cm)
+    p = planner()
+    pose = (1.35, 2.5, 0.0)  # 0.25 m from the wall: inside the inscribed radius 0.3 m
+    res = p.plan(cm, pose, (0.0, 0.0, 0.0), straight_path(2.5, 1.35, 4.0), (4.0, 2.5, 0.0))
+    assert res.ok and res.twist[0] > 0.0

@@ -11,7 +11,8 @@ held over ``sim_time_s`` and integrated exactly on SE(2):
     as wz -> 0).
 
 Critics, all vectorised over the samples (numpy), each scaled by its weight in ``DwaConfig`` and summed (lowest wins):
-- obstacle: max costmap cost along the trajectory / 252; a cell >= 253 (or unknown) makes the sample invalid;
+- obstacle: max costmap cost along the trajectory / 252; a cell >= 253 (or unknown) makes the sample invalid
+  (except, when the robot already stands in the inscribed zone, trajectories that end outside it);
 - path_distance: distance (m) from the trajectory end to the nearest point of the local path;
 - path_alignment: |heading error| (rad) of the end pose against the path direction at that nearest point;
 - goal_distance: distance (m) from the end to the local goal (the last point of the local path);
@@ -148,6 +149,12 @@ class DwaPlanner:
         traj = self.rollout(pose, twists)
         obstacle = self._obstacle_costs(costmap, traj)
         valid = obstacle < INSCRIBED
+        if int(costmap.cost_at(pose[0], pose[1])) == INSCRIBED and not valid.any():
+            # escape: the robot already touches the inscribed zone; accept trajectories that leave it without
+            # crossing a lethal or unknown cell
+            end_cost = costmap.cost_at(traj[:, -1, 0], traj[:, -1, 1])
+            valid = (obstacle <= INSCRIBED) & (end_cost < INSCRIBED)
+            obstacle = np.minimum(obstacle, MAX_NON_OBSTACLE)
         end = traj[:, -1, :]
         if len(path) == 0:
             path = np.asarray([goal], dtype=float)

@@ -115,10 +115,14 @@ async def run(ctx: ServiceContext) -> None:
         nav.set_map(data.reshape(msg.height, msg.width), msg.resolution, msg.origin.x, msg.origin.y)
         log.info("map %dx%d at %.3f m", msg.width, msg.height, msg.resolution)
 
+    last_scan = [-math.inf]
+
     def on_scan(msg: m.LaserScan) -> None:
         pose = tracker.current()
-        if pose is None:
+        now = clock.now()
+        if pose is None or now - last_scan[0] < 1.0 / cfg.scan_integration_hz:
             return
+        last_scan[0] = now
         ranges = codec.array(msg, "ranges")
         if not msg.angle_increment or ranges.size == 0:
             return
