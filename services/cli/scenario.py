@@ -4,7 +4,7 @@ final-pose errors against ground truth (the paper's Table 3).
 Scenario TOML (keys fixed):
 
     world = "corridor"            # a built-in sim world, or
-    map = "maps/depot.yaml"       # any ROS map YAML (relative to the scenario file); occupied/unknown are solid
+    map = "maps/depot.yaml"       # any ROS map YAML (relative to the scenario file, else to the current folder)
     start = [0.0, 0.0, 0.0]       # x, y (m), theta (rad)
     repeats = 10
     speed = 4.0                   # sim speed factor (sim s per wall s)
@@ -108,9 +108,12 @@ def load_scenario(path: str | Path) -> Scenario:
     map_yaml = None
     if "map" in data:
         mp = Path(data["map"])
-        map_yaml = str(mp if mp.is_absolute() else (p.parent / mp).resolve())
-        if not Path(map_yaml).is_file():
-            raise ScenarioError(f"{p}: map {map_yaml} does not exist")
+        candidates = [mp] if mp.is_absolute() else [(p.parent / mp).resolve(), mp.resolve()]
+        found = [c for c in candidates if c.is_file()]
+        if not found:
+            raise ScenarioError(f"{p}: map {data['map']} not found (relative to the scenario file or the current"
+                                f" folder: {', '.join(map(str, candidates))})")
+        map_yaml = str(found[0])
     goals_raw = data.get("goals", [])
     if not goals_raw:
         raise ScenarioError(f"{p}: no [[goals]]")
