@@ -506,15 +506,14 @@ class Navigator:
         fine_done = dxy < cfg.fine_xy_target_m and abs(eth) < cfg.fine_yaw_target_rad
         timed_out = now - g.fine_since > cfg.fine_timeout_s
         self.state = "rotating" if dxy < self.xy_tol else "driving"
-        if fine_done or (timed_out and within_tol):
-            if g.settled_since is None:
-                g.settled_since = now
-            if now - g.settled_since >= cfg.settle_time_s:
-                if within_tol:
-                    self._finish("succeeded", "", now, pose)
-                    return (0.0, 0.0, 0.0)
-                g.settled_since = None
-            return (0.0, 0.0, 0.0)
+        if g.settled_since is None and (fine_done or (timed_out and within_tol)):
+            g.settled_since = now  # fine targets met: stop and let the robot settle, then judge (no re-correction)
+        if g.settled_since is not None:
+            if now - g.settled_since < cfg.settle_time_s:
+                return (0.0, 0.0, 0.0)
+            if within_tol:
+                self._finish("succeeded", "", now, pose)
+                return (0.0, 0.0, 0.0)
         g.settled_since = None
         if timed_out and now - g.fine_since > 2 * cfg.fine_timeout_s:
             self._finish("failed", f"final approach did not converge: error {dxy:.3f} m, {eth:.3f} rad", now, pose)
