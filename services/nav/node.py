@@ -22,7 +22,7 @@ from services.common.clock import Rate
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
-from services.nav.navigator import TERMINAL, Navigator
+from services.nav.navigator import TERMINAL, Navigator, PlanOutcome
 
 Pose = tuple[float, float, float]
 
@@ -120,7 +120,7 @@ async def run(ctx: ServiceContext) -> None:
     def on_scan(msg: m.LaserScan) -> None:
         pose = tracker.current()
         now = clock.now()
-        if pose is None or now - last_scan[0] < 1.0 / cfg.scan_integration_hz:
+        if pose is None or 0.0 <= now - last_scan[0] < 1.0 / cfg.scan_integration_hz:
             return
         last_scan[0] = now
         ranges = codec.array(msg, "ranges")
@@ -223,7 +223,11 @@ async def run(ctx: ServiceContext) -> None:
 
     async def plan_job(req) -> None:  # noqa: ANN001
         t0 = loop.time()
-        out = await loop.run_in_executor(None, nav.compute_plan, req)
+        try:
+            out = await loop.run_in_executor(None, nav.compute_plan, req)
+        except Exception as exc:  # a planner bug must not leave the goal waiting for a plan forever
+            log.exception("planner failed")
+            out = PlanOutcome(np.zeros((0, 3)), f"planner error: {type(exc).__name__}: {exc}", req.goal_seq)
         node.extra_stats["last_plan_ms"] = round((loop.time() - t0) * 1000, 1)
         pose = tracker.current() or req.start
         nav.apply_plan(clock.now(), out, pose)
