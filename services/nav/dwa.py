@@ -115,13 +115,17 @@ class DwaPlanner:
         """Trajectories (n, steps, 3) of each twist held for sim_time from ``pose`` (exact SE(2) integration)."""
         c = self.config
         t = np.linspace(c.sim_time_s / c.sim_steps, c.sim_time_s, c.sim_steps)[None, :]
-        vx, vy, wz = (twists[:, k:k + 1] for k in range(3))
+        # S, C and theta depend on wz only: evaluate the trigonometry once per distinct wz
+        wz_u, inv = np.unique(twists[:, 2], return_inverse=True)
+        wz = wz_u[:, None]
         th0 = pose[2]
-        th = th0 + wz * t
+        th_u = th0 + wz * t
         small = np.abs(wz) < 1e-6
         wz_safe = np.where(small, 1.0, wz)
-        s = np.where(small, t * math.cos(th0), (np.sin(th) - math.sin(th0)) / wz_safe)
-        cc = np.where(small, t * math.sin(th0), (math.cos(th0) - np.cos(th)) / wz_safe)
+        s_u = np.where(small, t * math.cos(th0), (np.sin(th_u) - math.sin(th0)) / wz_safe)
+        c_u = np.where(small, t * math.sin(th0), (math.cos(th0) - np.cos(th_u)) / wz_safe)
+        s, cc, th = s_u[inv], c_u[inv], th_u[inv]
+        vx, vy = twists[:, 0:1], twists[:, 1:2]
         x = pose[0] + vx * s - vy * cc
         y = pose[1] + vx * cc + vy * s
         return np.stack([x, y, th], axis=-1)
