@@ -4,8 +4,11 @@ drives a kinematic base with nav's cmd_vel; goals, rejections, cancel and status
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +20,7 @@ from tests.support.waiting import wait_for_sync
 pytestmark = pytest.mark.integration
 
 RES = 0.05
+REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def corridor_grid() -> m.OccupancyGrid:
@@ -139,6 +143,16 @@ def test_goal_cancel_and_status_through_the_service(stack_factory) -> None:  # n
         wait_for_sync(lambda: np.allclose(robot.cmd, 0.0), timeout_s=10)
         assert not call(session, keys, "nav/cancel", m.CancelRequest()).ok
         assert call(session, keys, "nav/clear_costmaps", m.Empty()).ok
+        # the zagv goal command follows a goal to its end
+        cli = [sys.executable, "-m", "services.cli", "goal", "--connect", stack.endpoint, "--robot-id",
+               stack.robot_id]
+        done = subprocess.run([*cli, "1.0", "1.0", "0.0"], capture_output=True, text=True, timeout=120,
+                              cwd=REPO_ROOT)
+        assert done.returncode == 0, done.stdout + done.stderr
+        assert "accepted as" in done.stdout and "succeeded" in done.stdout
+        rejected = subprocess.run([*cli, "--", "-1.9", "0", "0"], capture_output=True, text=True, timeout=60,
+                                  cwd=REPO_ROOT)
+        assert rejected.returncode == 1 and "rejected" in rejected.stdout
     finally:
         sub.undeclare()
         psub.undeclare()
