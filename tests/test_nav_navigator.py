@@ -239,3 +239,15 @@ def test_waypoints_pause_resume_skip_and_results() -> None:
     assert nav.control_sequence(sim.t, "skip")[0] is False  # finished
     ok, _, reason = nav.start_sequence(sim.t, [("x", (3.0, -1.8, 0.0))], "")
     assert not ok and "waypoint 1" in reason
+
+
+def test_polygon_footprint_reaches_a_goal() -> None:
+    nav, sim = make((0.0, 0.0, 0.0), footprint=[[0.45, 0.4], [-0.45, 0.4], [-0.45, -0.4], [0.45, -0.4]])
+    assert not nav.footprint.is_circle
+    goal = (3.0, 3.3, 1.57)
+    ok, _, reason = nav.start_goal(0.0, goal)
+    assert ok, reason
+    drive(nav, sim, 150.0)
+    assert nav.state == "succeeded", nav.error
+    ex, ey, eth = pose_error(sim, goal)
+    assert abs(ex) <= 0.02 and abs(ey) <= 0.02 and abs(eth) <= 0.02

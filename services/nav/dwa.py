@@ -130,28 +130,45 @@ class DwaPlanner:
         y = pose[1] + vx * cc + vy * s
         return np.stack([x, y, th], axis=-1)
 
-    def _obstacle_costs(self, costmap: Costmap2D, traj: np.ndarray) -> np.ndarray:
-        """Max cost (n,) over each trajectory; >= 253 means a collision."""
+    def _obstacle_costs(self, costmap: Costmap2D, traj: np.ndarray, distance_m: np.ndarray | None = None
+                        ) -> np.ndarray:
+        """Max cost (n,) over each trajectory; >= 253 means a collision.
+
+        A polygon footprint is checked along its outline, but only at poses whose centre lies closer than the
+        circumscribed radius to an obstacle (``distance_m``, the inflation layer's distance field, when given)."""
+        centre = costmap.cost_at(traj[..., 0], traj[..., 1]).astype(np.int16)
         if self._outline is None:
-            cost = costmap.cost_at(traj[..., 0], traj[..., 1]).astype(np.int16)
-            return cost.max(axis=1)
-        o = self._outline
-        th = traj[..., 2:3]
-        ox = traj[..., 0:1] + np.cos(th) * o[:, 0] - np.sin(th) * o[:, 1]
-        oy = traj[..., 1:2] + np.sin(th) * o[:, 0] + np.cos(th) * o[:, 1]
-        lethal = costmap.cost_at(ox, oy).astype(np.int16).max(axis=(1, 2))
-        centre = costmap.cost_at(traj[..., 0], traj[..., 1]).astype(np.int16).max(axis=1)
+            return centre.max(axis=1)
         centre = np.where(centre == INSCRIBED, MAX_NON_OBSTACLE, centre)  # inscribed is not a collision for a polygon
-        return np.maximum(np.where(lethal >= INSCRIBED + 1, lethal, 0), centre)
+        if distance_m is not None and distance_m.shape == costmap.cost.shape:
+            i, j = costmap.world_to_map(traj[..., 0], traj[..., 1])
+            ok = costmap.in_bounds(i, j)
+            d = np.zeros(i.shape, dtype=np.float32)
+            d[ok] = distance_m[i[ok], j[ok]]
+            near = d < self.footprint.circumscribed_radius_m + costmap.resolution
+        else:
+            near = np.ones(traj.shape[:2], dtype=bool)
+        worst = centre.max(axis=1)
+        si, ki = np.nonzero(near)
+        if len(si):
+            poses = traj[si, ki]
+            o = self._outline
+            th = poses[:, 2:3]
+            ox = poses[:, 0:1] + np.cos(th) * o[:, 0] - np.sin(th) * o[:, 1]
+            oy = poses[:, 1:2] + np.sin(th) * o[:, 0] + np.cos(th) * o[:, 1]
+            hit = costmap.cost_at(ox, oy).astype(np.int16).max(axis=1)
+            hit = np.where(hit > INSCRIBED, hit, 0)
+            np.maximum.at(worst, si, hit)
+        return worst
 
     def plan(self, costmap: Costmap2D, pose: tuple[float, float, float], current: tuple[float, float, float],
-             path: np.ndarray, goal: tuple[float, float, float], previous: tuple[float, float, float] | None = None
-             ) -> DwaResult:
+             path: np.ndarray, goal: tuple[float, float, float], previous: tuple[float, float, float] | None = None,
+             distance_m: np.ndarray | None = None) -> DwaResult:
         """Best twist towards the local part of ``path`` (m, m, rad rows, already pruned to start near the robot)."""
         c = self.config
         twists = self.samples(current)
         traj = self.rollout(pose, twists)
-        obstacle = self._obstacle_costs(costmap, traj)
+        obstacle = self._obstacle_costs(costmap, traj, distance_m)
         valid = obstacle < INSCRIBED
         if int(costmap.cost_at(pose[0], pose[1])) == INSCRIBED and not valid.any():
             # escape: the robot already touches the inscribed zone; accept trajectories that leave it without

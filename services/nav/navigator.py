@@ -462,7 +462,7 @@ class Navigator:
                 return self.cmd
         self.state = "driving"
         res = self.dwa.plan(self.local_costmap.master, pose, self.cmd, g.path[g.path_index:], g.pose,
-                            previous=self.cmd)
+                            previous=self.cmd, distance_m=self.local_costmap.inflation.distance_m)
         if not res.ok:
             self.local_plan = np.zeros((0, 3))
             g.stuck_since = g.stuck_since if g.stuck_since is not None else now
