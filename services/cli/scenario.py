@@ -205,6 +205,8 @@ class Client:
         self.status: m.NavStatus | None = None
         self.status_changed = asyncio.Event()
         self.paths: list[tuple[float, np.ndarray]] = []
+        self.odom_count = 0
+        self.pose: m.PoseWithCovariance | None = None
         self.collisions = 0
         self.leg: Leg | None = None
         self._subs = []
@@ -212,6 +214,14 @@ class Client:
         self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
         self._sub("nav/status", m.NavStatus, self._on_status)
         self._sub("nav/path", m.Path, self._on_path)
+        self._sub("odom", m.Odometry, self._on_odom)
+        self._sub("pose", m.PoseWithCovariance, self._on_pose)
+
+    def _on_odom(self, _: m.Odometry) -> None:
+        self.odom_count += 1
+
+    def _on_pose(self, msg: m.PoseWithCovariance) -> None:
+        self.pose = msg
 
     def _sub(self, name: str, t: type, cb) -> None:  # noqa: ANN001
         def on_sample(sample) -> None:  # noqa: ANN001
@@ -258,8 +268,18 @@ class Client:
                 s.undeclare()
 
 
+async def wait_until(cond, what: str, timeout_s: float) -> None:  # noqa: ANN001
+    """Wait (wall time) for ``cond()``; RuntimeError naming ``what`` after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{what} within {timeout_s:.0f} s")
+        await asyncio.sleep(0.05)
+
+
 async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
     """Teleport the simulated robot and tell localization where it is; wait for the estimate to agree."""
+    await wait_until(lambda: c.odom_count > 5, "no odometry (is drive running and its CAN link up?)", 90.0)
     p = m.Pose2D(x=pose[0], y=pose[1], theta=pose[2])
     r = await c.query("sim/teleport", m.TeleportRequest(pose=p))
     if not r.ok:
@@ -269,6 +289,14 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
                       m.InitialPoseRequest(pose=p, covariance=[0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]))
     if not r.ok:
         raise RuntimeError(f"localization/initial_pose refused: {r.message}")
+    t_set = c.sim_time
+
+    def localized() -> bool:
+        e = c.pose
+        return (e is not None and e.stamp >= t_set and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
+                and abs(wrap(e.pose.theta - pose[2])) < 0.1)
+
+    await wait_until(localized, f"localization did not report a pose near the start {pose}", 60.0)
     await c.sim_sleep(1.0)
 
 
@@ -281,6 +309,10 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     req = m.GoalRequest(pose=m.Pose2D(x=goal.pose[0], y=goal.pose[1], theta=goal.pose[2]),
                         id=f"r{run}g{goal.id}")
     reply: m.GoalReply = await c.query("nav/goal", req)
+    deadline = time.monotonic() + 30.0
+    while not reply.accepted and "no robot pose" in reply.reason and time.monotonic() < deadline:
+        await asyncio.sleep(0.2)  # nav has not yet seen odometry and map->odom
+        reply = await c.query("nav/goal", req)
     t0 = c.sim_time
     result = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
               "error": [None] * 3, "time_s": 0.0}
