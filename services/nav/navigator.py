@@ -298,7 +298,13 @@ class Navigator:
         self.error = error if state == "failed" else ""
         self.cmd = (0.0, 0.0, 0.0)
         self.local_plan = np.zeros((0, 3))
-        self.finished.append((g.id, state, error))
+        if pose is not None and state == "succeeded":
+            ex, ey, eth = pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap(pose[2] - g.pose[2]))
+            error = f"estimated error {ex:+.4f} m, {ey:+.4f} m, {eth:+.4f} rad"
+            self.finished.append((g.id, state, error))
+            error = ""
+        else:
+            self.finished.append((g.id, state, error))
         s = self.sequence
         if s is not None and s.index < len(s.waypoints) and s.waypoints[s.index][0] == g.id and state != "canceled":
             err = [0.0, 0.0, 0.0]
