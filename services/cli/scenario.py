@@ -192,6 +192,8 @@ class Leg:
     goal: Goal
     start_t: float
     plan: np.ndarray | None = None
+    final_plan: np.ndarray | None = None
+    obstacles: list[tuple[float, float, float, float]] = field(default_factory=list)
     trace: list[tuple[float, float, float, float, float, float, float]] = field(default_factory=list)
 
 
@@ -251,8 +253,10 @@ class Client:
 
     def _on_path(self, msg: m.Path) -> None:
         poses = codec.array(msg, "poses").copy()
-        if self.leg is not None and self.leg.plan is None and len(poses):
-            self.leg.plan = poses
+        if self.leg is not None and len(poses):
+            if self.leg.plan is None:
+                self.leg.plan = poses
+            self.leg.final_plan = poses
 
     async def query(self, name: str, req: m.Message | None = None, timeout_s: float = 5.0) -> Any:
         return await query(self.session, self.keys, name, req, timeout_s=timeout_s)
@@ -329,6 +333,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
                     rr = await c.query("sim/obstacles", m.ObstacleRequest(action="add", id=oid, rect=list(o.rect)))
                     if rr.ok:
                         placed.append(oid)
+                        leg.obstacles.append(o.rect)
                     else:
                         print(f"scenario: obstacle {oid} refused: {rr.message}", flush=True)
                         placed.append(oid)
@@ -407,8 +412,13 @@ def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> 
             ext = [grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
                    grid.origin.y + grid.height * grid.resolution]
             ax.imshow(img, cmap="gray", origin="lower", extent=ext, vmin=0, vmax=1)
+        for r in leg.obstacles:
+            ax.add_patch(plt.Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], color="orange", alpha=0.8,
+                                       label="dynamic obstacle"))
         if leg.plan is not None and len(leg.plan):
             ax.plot(leg.plan[:, 0], leg.plan[:, 1], "b-", lw=1.5, label="global plan")
+        if leg.final_plan is not None and leg.final_plan is not leg.plan and leg.obstacles:
+            ax.plot(leg.final_plan[:, 0], leg.final_plan[:, 1], "c--", lw=1.2, label="last replanned path")
         if len(tr):
             step = max(1, len(tr) // 60)
             s = tr[::step]
