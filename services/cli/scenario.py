@@ -222,6 +222,7 @@ class Client:
         self.pose: m.PoseWithCovariance | None = None
         self.collisions = 0
         self.leg: Leg | None = None
+        self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
         self._subs = []
         self._sub("clock", m.Clock, self._on_clock)
         self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
@@ -377,11 +378,13 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         c.leg = None
         if legs is not None:
             legs.append(leg)
+        if leg.obstacles:
+            c.detours.append(leg.final_plan is not None)
     return result
 
 
 async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,  # noqa: ANN001
-                       progress=print) -> tuple[list[dict], list[Leg], int]:  # noqa: ANN001
+                       progress=print) -> tuple[list[dict], list[Leg], int, list[bool]]:  # noqa: ANN001
     loop = asyncio.get_running_loop()
     c = Client(session, keys, loop)
     legs: list[Leg] = []
@@ -404,7 +407,7 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
             runs.append({"run": run, "goals": goals})
     finally:
         c.close()
-    return runs, legs, c.collisions
+    return runs, legs, c.collisions, c.detours
 
 
 def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> list[Path]:
@@ -507,17 +510,17 @@ def run(args: argparse.Namespace) -> int:
         stack.start(ready_timeout_s=120.0)
         session = stack.session()
 
-        async def main() -> tuple[list[dict], list[Leg], int, m.OccupancyGrid | None]:
-            runs, legs, collisions = await run_scenario(sc, session, stack.keys, goal_timeout_s=args.goal_timeout,
+        async def main() -> tuple[list[dict], list[Leg], int, list[bool], m.OccupancyGrid | None]:
+            runs, legs, collisions, detours = await run_scenario(sc, session, stack.keys, goal_timeout_s=args.goal_timeout,
                                                         plots=bool(args.plots),
                                                         progress=lambda s: print(s, flush=True))
             grid = None
             if args.plots:
                 with contextlib.suppress(QueryError):
                     grid = await query(session, stack.keys, "map", m.Empty(), timeout_s=5.0)
-            return runs, legs, collisions, grid
+            return runs, legs, collisions, detours, grid
 
-        runs, legs, collisions, grid = asyncio.run(main())
+        runs, legs, collisions, detours, grid = asyncio.run(main())
     except (AssertionError, RuntimeError, QueryError) as exc:
         print(f"zagv scenario: {exc}", file=sys.stderr)
         return 1
@@ -528,6 +531,8 @@ def run(args: argparse.Namespace) -> int:
     total = sum(r["total"] for r in summary)
     reached = sum(r["reached"] for r in summary)
     print(f"reached {reached}/{total} goals; collisions: {collisions}")
+    if detours:
+        print(f"replanned around the dynamic obstacle in {sum(detours)}/{len(detours)} legs")
     if args.json:
         Path(args.json).write_text(json.dumps({"runs": runs}, indent=2))
     if args.plots:
