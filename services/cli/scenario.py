@@ -511,9 +511,9 @@ def run(args: argparse.Namespace) -> int:
         session = stack.session()
 
         async def main() -> tuple[list[dict], list[Leg], int, list[bool], m.OccupancyGrid | None]:
-            runs, legs, collisions, detours = await run_scenario(sc, session, stack.keys, goal_timeout_s=args.goal_timeout,
-                                                        plots=bool(args.plots),
-                                                        progress=lambda s: print(s, flush=True))
+            runs, legs, collisions, detours = await run_scenario(
+                sc, session, stack.keys, goal_timeout_s=args.goal_timeout, plots=bool(args.plots),
+                progress=lambda s: print(s, flush=True))
             grid = None
             if args.plots:
                 with contextlib.suppress(QueryError):
