@@ -155,6 +155,7 @@ def test_turns_in_place_first_when_the_goal_lies_behind() -> None:
     assert len(turning) > 20
 
 
+@pytest.mark.slow
 def test_replans_around_a_box_that_appears_on_the_path() -> None:
     nav, sim = make((1.0, 3.5, 0.0))
     goal = (14.0, 3.5, 0.0)
