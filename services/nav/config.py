@@ -47,8 +47,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     yaw_goal_tolerance_rad: float = 0.0
     # final fine approach (P-controller on the goal pose)
     fine_approach_distance_m: float = 0.35
-    fine_xy_target_m: float = 0.008
-    fine_yaw_target_rad: float = 0.008
+    fine_xy_target_m: float = 0.004
+    fine_yaw_target_rad: float = 0.004
     fine_kp_xy: float = 1.0
     fine_kp_yaw: float = 1.2
     fine_min_speed_mps: float = 0.01
