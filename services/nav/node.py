@@ -273,5 +273,6 @@ async def run(ctx: ServiceContext) -> None:
         publish_status(force=now >= next_status)
         if now >= next_status:
             next_status = now + 1.0 / cfg.status_frequency_hz
+            node.extra_stats["controller"] = {"cycles": rate.cycles, "overruns": rate.overruns}
         await rate.sleep()
     pub_cmd.put(m.Twist2D(stamp=clock.now()))
