@@ -220,6 +220,7 @@ class Client:
         self.paths: list[tuple[float, np.ndarray]] = []
         self.odom_count = 0
         self.pose: m.PoseWithCovariance | None = None
+        self.pose_count = 0
         self.collisions = 0
         self.leg: Leg | None = None
         self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
@@ -236,6 +237,7 @@ class Client:
 
     def _on_pose(self, msg: m.PoseWithCovariance) -> None:
         self.pose = msg
+        self.pose_count += 1
 
     def _sub(self, name: str, t: type, cb) -> None:  # noqa: ANN001
         def on_sample(sample) -> None:  # noqa: ANN001
@@ -307,11 +309,12 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
                       m.InitialPoseRequest(pose=p, covariance=[0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]))
     if not r.ok:
         raise RuntimeError(f"localization/initial_pose refused: {r.message}")
-    t_set = c.sim_time
+    count_at_set = c.pose_count
 
-    def localized() -> bool:
+    def localized() -> bool:  # a pose published after the reset, near the start
         e = c.pose
-        return (e is not None and e.stamp >= t_set and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
+        return (e is not None and c.pose_count > count_at_set
+                and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
                 and abs(wrap(e.pose.theta - pose[2])) < 0.1)
 
     await wait_until(localized, f"localization did not report a pose near the start {pose}", 60.0)
