@@ -245,7 +245,8 @@ class Client:
                 msg = codec.decode_as(t, sample.payload.to_bytes(), str(sample.key_expr))
             except codec.ProtoDecodeError:
                 return
-            self.loop.call_soon_threadsafe(cb, msg)
+            with contextlib.suppress(RuntimeError):  # the loop already closed at the end of the run
+                self.loop.call_soon_threadsafe(cb, msg)
 
         self._subs.append(self.session.declare_subscriber(self.keys(name), on_sample))
 
@@ -331,8 +332,9 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
                         id=f"r{run}g{goal.id}")
     reply: m.GoalReply = await c.query("nav/goal", req)
     deadline = time.monotonic() + 30.0
-    while not reply.accepted and "no robot pose" in reply.reason and time.monotonic() < deadline:
-        await asyncio.sleep(0.2)  # nav has not yet seen odometry and map->odom
+    while not reply.accepted and ("no robot pose" in reply.reason or "no map" in reply.reason) \
+            and time.monotonic() < deadline:
+        await asyncio.sleep(0.2)  # nav has not yet seen odometry, map->odom or the map
         reply = await c.query("nav/goal", req)
     t0 = c.sim_time
     result = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,

@@ -19,6 +19,7 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from services.common.clock import Rate
+from services.common.node import QueryError
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
@@ -236,8 +237,24 @@ async def run(ctx: ServiceContext) -> None:
         elif nav.goal is not None and nav.goal.seq == out.goal_seq:
             pub_path.put(path_message(out.path, clock.now()))
 
+    map_asked_at = -math.inf
+    map_task: asyncio.Task | None = None
+
+    async def fetch_map() -> None:
+        try:
+            grid = await node.query("map", m.Empty(), timeout_s=2.0)
+        except QueryError as exc:
+            log.info("no map yet: %s", exc)
+            return
+        if not nav.has_map:
+            on_map(grid)
+
     while not ctx.stop.is_set():
         now = clock.now()
+        # the latched map may have been published before we subscribed: ask for it until we have one
+        if not nav.has_map and loop.time() - map_asked_at > 3.0 and (map_task is None or map_task.done()):
+            map_asked_at = loop.time()  # wall time: this is about link timing, not robot timing
+            map_task = node.spawn(fetch_map())
         pose = tracker.current()
         if pose is not None and nav.has_map:
             if now >= next_local:
