@@ -97,9 +97,8 @@ def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True,
             nav.update_costmaps(pose, "local")
         if k % 10 == 0:
             nav.update_costmaps(pose, "global")
-        req = nav.plan_due(sim.t)
-        if req is not None:
-            nav.apply_plan(sim.t, nav.compute_plan(nav.make_request(req, pose)), pose)
+        if nav.plan_due(sim.t):
+            nav.apply_plan(sim.t, nav.compute_plan(nav.make_request(pose)), pose)
         cmd = nav.step(sim.t, pose)
         if nav.state not in states:
             states.append(nav.state)

@@ -316,15 +316,14 @@ class Navigator:
 
     # ------------------------------------------------------------------ planning
 
-    def plan_due(self, now: float) -> PlanRequest | None:
+    def plan_due(self, now: float) -> bool:
+        """Whether a (re)plan should start now: a new goal, the planner period, or a blocked path."""
         g = self.goal
         if g is None or self.state in TERMINAL or g.planning or g.phase == "fine" or g.recovery:
-            return None
-        if not (g.plan_now or now - g.last_plan_at >= 1.0 / self.config.planner_frequency_hz):
-            return None
-        return PlanRequest(np.empty(0), self.global_costmap.master, (0, 0, 0), g.pose, g.seq)
+            return False
+        return g.plan_now or now - g.last_plan_at >= 1.0 / self.config.planner_frequency_hz
 
-    def make_request(self, req: PlanRequest, pose: tuple[float, float, float]) -> PlanRequest:
+    def make_request(self, pose: tuple[float, float, float]) -> PlanRequest:
         """Snapshot what the search needs (called on the loop thread; the search may run elsewhere)."""
         cm = self.global_costmap
         cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m,
@@ -332,7 +331,7 @@ class Navigator:
         snapshot = Costmap2D(cm.master.resolution, cm.master.origin_x, cm.master.origin_y, cost)
         assert self.goal is not None
         self.goal.planning = True
-        return PlanRequest(cost, snapshot, pose, req.goal, req.goal_seq)
+        return PlanRequest(cost, snapshot, pose, self.goal.pose, self.goal.seq)
 
     def compute_plan(self, req: PlanRequest) -> PlanOutcome:
         cm = req.costmap

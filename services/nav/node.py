@@ -269,8 +269,8 @@ async def run(ctx: ServiceContext) -> None:
         active = nav.goal is not None and nav.state not in TERMINAL and nav.state != "idle"
         if active and pose is not None:
             stale = now - tracker.last_update() > cfg.pose_timeout_s
-            if (plan_task is None or plan_task.done()) and (req := nav.plan_due(now)) is not None:
-                plan_task = node.spawn(plan_job(nav.make_request(req, pose)))
+            if (plan_task is None or plan_task.done()) and nav.plan_due(now):
+                plan_task = node.spawn(plan_job(nav.make_request(pose)))
             if stale:
                 vx, vy, wz = 0.0, 0.0, 0.0
                 nav.cmd = (0.0, 0.0, 0.0)
