@@ -221,9 +221,12 @@ class Client:
         self.odom_count = 0
         self.pose: m.PoseWithCovariance | None = None
         self.pose_count = 0
+        self.odom: tuple[float, float, float] | None = None
+        self.map_odom: tuple[float, float, float] | None = None
         self.collisions = 0
         self.leg: Leg | None = None
-        self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
+        self.detours: list[bool] = []
+        self.localization_errors: list[tuple[float, float, float]] = []  # per leg with a dynamic obstacle: whether nav planned around it
         self._subs = []
         self._sub("clock", m.Clock, self._on_clock)
         self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
@@ -231,9 +234,22 @@ class Client:
         self._sub("nav/path", m.Path, self._on_path)
         self._sub("odom", m.Odometry, self._on_odom)
         self._sub("pose", m.PoseWithCovariance, self._on_pose)
+        self._sub("tf/map_odom", m.Transform2D, self._on_tf)
 
-    def _on_odom(self, _: m.Odometry) -> None:
+    def _on_odom(self, msg: m.Odometry) -> None:
         self.odom_count += 1
+        self.odom = (msg.pose.x, msg.pose.y, msg.pose.theta)
+
+    def _on_tf(self, msg: m.Transform2D) -> None:
+        self.map_odom = (msg.x, msg.y, msg.theta)
+
+    def estimate(self) -> tuple[float, float, float] | None:
+        """The robot's pose as nav sees it: map->odom composed with the odometry pose."""
+        if self.odom is None or self.map_odom is None:
+            return None
+        a, b = self.map_odom, self.odom
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
 
     def _on_pose(self, msg: m.PoseWithCovariance) -> None:
         self.pose = msg
@@ -373,6 +389,9 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
             p = c.truth.pose
             result["final"] = [p.x, p.y, p.theta]
             result["error"] = [p.x - goal.pose[0], p.y - goal.pose[1], wrap(p.theta - goal.pose[2])]
+            est = c.estimate()
+            if est is not None:  # how far localization was off at the end (diagnostic, not in the JSON)
+                c.localization_errors.append((est[0] - p.x, est[1] - p.y, wrap(est[2] - p.theta)))
         result["reached"] = state == "succeeded"
         if state != "succeeded":
             print(f"scenario: run {run} goal {goal.id}: {state} {error}", flush=True)
@@ -407,8 +426,9 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                 res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None)
                 goals.append(res)
                 err = ", ".join(f"{v:+.3f}" if v is not None else "-" for v in res["error"])
+                loc = ", ".join(f"{v:+.3f}" for v in c.localization_errors[-1]) if c.localization_errors else "-"
                 progress(f"scenario: run {run} goal {goal.id}: {'reached' if res['reached'] else 'NOT reached'}"
-                         f" error {err} in {res['time_s']:.1f} s")
+                         f" error {err} in {res['time_s']:.1f} s (localization estimate - truth: {loc})")
             runs.append({"run": run, "goals": goals})
     finally:
         c.close()
