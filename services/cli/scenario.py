@@ -225,8 +225,8 @@ class Client:
         self.map_odom: tuple[float, float, float] | None = None
         self.collisions = 0
         self.leg: Leg | None = None
-        self.detours: list[bool] = []
-        self.localization_errors: list[tuple[float, float, float]] = []  # per leg with a dynamic obstacle: whether nav planned around it
+        self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
+        self.localization_errors: list[tuple[float, float, float]] = []
         self._subs = []
         self._sub("clock", m.Clock, self._on_clock)
         self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
