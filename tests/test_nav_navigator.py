@@ -251,3 +251,29 @@ def test_polygon_footprint_reaches_a_goal() -> None:
     assert nav.state == "succeeded", nav.error
     ex, ey, eth = pose_error(sim, goal)
     assert abs(ex) <= 0.02 and abs(ey) <= 0.02 and abs(eth) <= 0.02
+
+
+def test_settled_robot_asks_localization_and_corrects_odometry_drift() -> None:
+    """Nav sees the pose 2 cm off (odometry drift since the last filter update) until it asks for an update."""
+    nav, sim = make((0.0, 3.2, 0.0))
+    goal = (2.0, 3.2, 0.0)
+    assert nav.start_goal(0.0, goal)[0]
+    drift = np.array([0.02, 0.0, 0.0])
+    requests = []
+    dt = 0.05
+    while sim.t < 90.0 and nav.state not in ("succeeded", "failed"):
+        seen = tuple(sim.pose + drift)
+        if nav.plan_due(sim.t):
+            nav.apply_plan(sim.t, nav.compute_plan(nav.make_request(seen)), seen)
+        nav.update_costmaps(seen, "local")
+        cmd = nav.step(sim.t, seen)
+        if nav.localization_request:
+            nav.localization_request = False
+            requests.append(sim.t)
+            drift = np.zeros(3)  # the fresh estimate is right
+            nav.localization_updated(sim.t)
+        sim.step(cmd, dt)
+    assert nav.state == "succeeded", nav.error
+    assert len(requests) >= 1
+    ex, ey, eth = pose_error(sim, goal)
+    assert abs(ex) <= 0.006 and abs(ey) <= 0.006, (ex, ey)

@@ -55,6 +55,10 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     fine_min_wz_radps: float = 0.02
     fine_timeout_s: float = 20.0
     settle_time_s: float = 0.4
+    # once settled, ask localization for an update without motion (odometry drifts since its last update) and
+    # correct again if the fresh estimate is off; at most this many times, waiting at most the timeout for it
+    final_localization_updates: int = 2
+    localization_update_timeout_s: float = 1.5
     # turn in place first when the path leaves behind the robot (LMS111 blind sector)
     rotate_first_angle_rad: float = 0.785
     rotate_done_angle_rad: float = 0.15

@@ -77,6 +77,10 @@ class GoalState:
     phase: str = "planning"
     fine_since: float | None = None
     settled_since: float | None = None
+    loc_requested_at: float | None = None
+    loc_updated: bool = False
+    loc_updated_at: float = 0.0
+    loc_updates: int = 0
     xy_latched: bool = False
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
@@ -136,6 +140,8 @@ class Navigator:
         self.local_plan = np.zeros((0, 3))
         self.distance_left_m = 0.0
         self.finished: list[tuple[str, str, str]] = []  # (goal id, state, error) events for the node
+        #: set when the goal checker wants a localization update without motion; the node sends it and clears it
+        self.localization_request = False
         self._ids = itertools.count(1)
         self._seq = itertools.count(1)
         self._dt = 1.0 / config.controller_frequency_hz
@@ -313,6 +319,13 @@ class Navigator:
             s.results.append({"id": g.id, "reached": state == "succeeded", "skipped": False, "error": err,
                               "time_s": now - g.started_at, "reason": error})
             self._next_waypoint(now)
+
+    def localization_updated(self, now: float) -> None:
+        """The localization published a new estimate (call after a requested update)."""
+        g = self.goal
+        if g is not None and g.loc_requested_at is not None and not g.loc_updated:
+            g.loc_updated = True
+            g.loc_updated_at = now
 
     # ------------------------------------------------------------------ planning
 
@@ -512,10 +525,29 @@ class Navigator:
         timed_out = now - g.fine_since > cfg.fine_timeout_s
         self.state = "rotating" if dxy < self.xy_tol else "driving"
         if g.settled_since is None and (fine_done or (timed_out and within_tol)):
-            g.settled_since = now  # fine targets met: stop and let the robot settle, then judge (no re-correction)
+            g.settled_since = now  # fine targets met: stop and let the robot settle, then judge
         if g.settled_since is not None:
             if now - g.settled_since < cfg.settle_time_s:
                 return (0.0, 0.0, 0.0)
+            if g.loc_updates < cfg.final_localization_updates and not timed_out:
+                # a fresh localization estimate at standstill: odometry has drifted since the last update
+                if g.loc_requested_at is None:
+                    g.loc_requested_at = now
+                    g.loc_updated = False
+                    self.localization_request = True
+                    return (0.0, 0.0, 0.0)
+                waited = now - g.loc_requested_at
+                if not g.loc_updated and waited < cfg.localization_update_timeout_s:
+                    return (0.0, 0.0, 0.0)
+                if g.loc_updated and waited < g.loc_updated_at - g.loc_requested_at + 2 * self._dt:
+                    return (0.0, 0.0, 0.0)  # let map->odom of that update arrive too
+                g.loc_updates += 1
+                g.loc_requested_at = None
+                if not g.loc_updated:
+                    g.loc_updates = cfg.final_localization_updates  # no localization answering: judge now
+                elif not fine_done:
+                    g.settled_since = None  # the fresh estimate is off: correct again
+                    return (0.0, 0.0, 0.0)
             if within_tol:
                 self._finish("succeeded", "", now, pose)
                 return (0.0, 0.0, 0.0)

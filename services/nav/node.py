@@ -1,8 +1,10 @@
 """The nav service's asyncio shell: wires the Navigator to Zenoh topics, queries and the clock.
 
-Inputs: ``map`` (latched), ``pose`` (map frame, localization), ``tf/map_odom`` + ``odom`` (the high-rate map pose
-is map->odom composed with the odometry pose; without a transform the last ``pose`` is moved on by the odometry
-since it arrived), ``scan``. Outputs: ``cmd_vel`` at ``controller_frequency_hz`` while a goal runs (then one zero),
+Inputs: ``map`` (latched), ``pose`` (map frame, localization), ``tf/map_odom`` + ``odom`` (the high-rate map pose is
+map->odom composed with the odometry pose; without a transform the last ``pose`` is moved on by the odometry since it
+arrived), ``scan``. At the goal, once settled, nav asks ``localization/nomotion`` for a fresh estimate and corrects
+again when it is off (odometry drifts between filter updates).
+Outputs: ``cmd_vel`` at ``controller_frequency_hz`` while a goal runs (then one zero),
 ``nav/path`` per plan, ``nav/local_plan`` (5 Hz), ``nav/status`` (``status_frequency_hz`` and on every change),
 ``nav/costmap`` (the global costmap at its publish frequency; costs 0..252 as 0..98, 253 -> 99, 254 -> 100,
 255 -> -1 like Nav2's costmap publisher). Queries: ``nav/goal``, ``nav/cancel``, ``nav/waypoints``,
@@ -134,7 +136,26 @@ async def run(ctx: ServiceContext) -> None:
     node.subscribe("map", on_map, latched=True)
     node.subscribe("odom", tracker.on_odom)
     node.subscribe("tf/map_odom", tracker.on_tf)
-    node.subscribe("pose", tracker.on_pose)
+    loc_state = {"answered": False}
+
+    def on_pose(msg: m.PoseWithCovariance) -> None:
+        tracker.on_pose(msg)
+        if loc_state["answered"]:  # the first estimate after a requested no-motion update
+            loc_state["answered"] = False
+            nav.localization_updated(clock.now())
+
+    async def request_localization_update() -> None:
+        try:
+            reply = await node.query("localization/nomotion", m.Empty(), timeout_s=1.0)
+        except QueryError as exc:
+            log.info("no localization update at the goal: %s", exc)
+            return
+        if reply.ok:
+            loc_state["answered"] = True
+        else:
+            log.info("localization refused an update at the goal: %s", reply.message)
+
+    node.subscribe("pose", on_pose)
     node.subscribe("scan", on_scan)
 
     def status() -> m.NavStatus:
@@ -276,6 +297,9 @@ async def run(ctx: ServiceContext) -> None:
                 nav.cmd = (0.0, 0.0, 0.0)
             else:
                 vx, vy, wz = nav.step(now, pose)
+            if nav.localization_request:
+                nav.localization_request = False
+                node.spawn(request_localization_update())
             pub_cmd.put(m.Twist2D(vx=vx, vy=vy, wz=wz, stamp=now))
             if now >= next_local_pub:
                 pub_local.put(path_message(nav.local_plan, now))
