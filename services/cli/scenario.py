@@ -225,6 +225,7 @@ class Client:
         self.map_odom: tuple[float, float, float] | None = None
         self.collisions = 0
         self.leg: Leg | None = None
+        self.aborted = False
         self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
         self.localization_errors: list[tuple[float, float, float]] = []
         self._subs = []
@@ -321,20 +322,26 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
     r = await c.query("sim/teleport", m.TeleportRequest(pose=p))
     if not r.ok:
         raise RuntimeError(f"sim/teleport refused: {r.message}")
-    await c.sim_sleep(0.3)
-    r = await c.query("localization/initial_pose",
-                      m.InitialPoseRequest(pose=p, covariance=[0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]))
-    if not r.ok:
-        raise RuntimeError(f"localization/initial_pose refused: {r.message}")
-    count_at_set = c.pose_count
+    await c.sim_sleep(1.0)  # scans taken before the jump are through the pipeline
+    cov = [0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]
+    for attempt in range(1, 7):
+        r = await c.query("localization/initial_pose", m.InitialPoseRequest(pose=p, covariance=cov))
+        if not r.ok:
+            raise RuntimeError(f"localization/initial_pose refused: {r.message}")
+        count_at_set = c.pose_count
 
-    def localized() -> bool:  # a pose published after the reset, near the start
-        e = c.pose
-        return (e is not None and c.pose_count > count_at_set
-                and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
-                and abs(wrap(e.pose.theta - pose[2])) < 0.1)
+        def localized() -> bool:  # a pose published after the reset, near the start
+            e = c.pose
+            return (e is not None and c.pose_count > count_at_set  # noqa: B023
+                    and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
+                    and abs(wrap(e.pose.theta - pose[2])) < 0.1)
 
-    await wait_until(localized, f"localization did not report a pose near the start {pose}", 60.0)
+        try:
+            await wait_until(localized, f"localization did not report a pose near the start {pose}", 10.0)
+            break
+        except RuntimeError:
+            if attempt == 6:
+                raise
     await c.sim_sleep(1.0)
 
 
@@ -420,7 +427,12 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                 raise RuntimeError("no sim/ground_truth within 30 s")
             await asyncio.sleep(0.05)
         for run in range(1, sc.repeats + 1):
-            await place_robot(c, sc.start)
+            try:
+                await place_robot(c, sc.start)
+            except (RuntimeError, QueryError) as exc:  # report the runs done so far
+                progress(f"scenario: stopped before run {run}: {exc}")
+                c.aborted = True
+                break
             goals = []
             for k, goal in enumerate(sc.goals, 1):
                 res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None)
@@ -432,6 +444,10 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
             runs.append({"run": run, "goals": goals})
     finally:
         c.close()
+    if c.aborted:
+        runs.append({"run": len(runs) + 1, "goals": [
+            {"id": g.id, "target": list(g.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
+             "time_s": 0.0} for g in sc.goals]})
     return runs, legs, c.collisions, c.detours
 
 
