@@ -271,8 +271,8 @@ class Client:
         self.sim_time = max(self.sim_time, msg.stamp)
 
     def _on_truth(self, msg: m.GroundTruth) -> None:
-        if msg.collided and not (self.truth and self.truth.collided):
-            self.collisions += 1
+        if msg.collided and not (self.truth and self.truth.collided) and self.leg is not None:
+            self.collisions += 1  # while driving a leg (the sim's own start pose may lie in a wall of a map)
         self.truth = msg
         self.sim_time = max(self.sim_time, msg.stamp)
         if self.leg is not None:
