@@ -171,14 +171,15 @@ def summarize(runs: list[dict]) -> list[dict]:
 
 
 def format_table(summary: list[dict]) -> str:
-    head = f"{'goal':>5}  {'target (x, y, θ)':<24}  {'mean error x / y / θ':<26}  {'|error| x / y / θ':<26}  " \
+    w = max([len(str(r["id"])) for r in summary] + [4])
+    head = f"{'goal':>{w}}  {'target (x, y, θ)':<24}  {'mean error x / y / θ':<26}  {'|error| x / y / θ':<26}  " \
            f"{'reached':>8}  {'time s':>7}"
     lines = [head, "-" * len(head)]
     for r in summary:
         t = "({:.2f}, {:.2f}, {:.2f})".format(*r["target"])
         e = "{:+.3f} / {:+.3f} / {:+.3f}".format(*r["mean_error"])
         a = "{:.3f} / {:.3f} / {:.3f}".format(*r["mean_abs_error"])
-        lines.append(f"{r['id']:>5}  {t:<24}  {e:<26}  {a:<26}  {r['reached']:>3}/{r['total']:<4}  "
+        lines.append(f"{r['id']:>{w}}  {t:<24}  {e:<26}  {a:<26}  {r['reached']:>3}/{r['total']:<4}  "
                      f"{r['mean_time_s']:>7.1f}")
     return "\n".join(lines)
 
