@@ -235,6 +235,8 @@ def test_each_service_accepts_its_units_command_line(venv: Path, tmp_path: Path,
     unit = rendered(options(venv))[f"zagv-{name}.service"]
     argv = one(unit, "Service", "ExecStart").replace("${STATE_DIRECTORY}", str(tmp_path)).split()
     argv[argv.index("--config") + 1] = str(repo / "deploy" / "robot.example.toml")
+    assert argv[0] == str(venv / "bin" / "python")
+    argv[0] = sys.executable  # the fixture's venv is only venv-shaped; run the same command with this interpreter
     result = subprocess.run([*argv, "--check-config"], capture_output=True, text=True, timeout=120, cwd=repo,
                             env={**os.environ, "PYTHONPATH": str(repo)})
     assert result.returncode == 0, result.stdout + result.stderr

@@ -82,6 +82,12 @@ class Stack:
                 with self._lock:
                     self.lines.append(raw.decode(errors="replace").rstrip("\n"))
 
+    def __enter__(self) -> Stack:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
     def stop(self) -> None:
         for s in self._sessions:
             with contextlib.suppress(Exception):

@@ -67,7 +67,8 @@ Commands (a write refreshes the RWD watchdog; reading returns the last value wri
 Queries (read-only):
 
 - ``0x2100.ch`` S16 motor amps x10; ``0x2101.ch`` S16 actual command after ramp (per mille of MXRPM / of travel);
-  ``0x2102.ch`` S16 applied power per mille; ``0x2103.ch`` S32 motor speed rpm; ``0x2104.ch`` S32 encoder counter;
+  ``0x2102.ch`` S16 applied power per mille; ``0x2103.ch`` S32 motor speed rpm; ``0x2104.ch`` S32 encoder counter
+  (wraps at 32 bits);
   ``0x2107.ch`` S16 speed per mille of MXRPM; ``0x210D.1/.2/.3`` U16 internal V x10 / battery V x10 / 5 V out mV;
   ``0x210F.1/.2`` S16 temperatures degC; ``0x2111.0`` U16 FS; ``0x2112.0`` U16 FF; ``0x2114.ch`` S32 closed-loop
   error (ch1 rpm, ch2 counts); ``0x211B.ch`` U8 destination reached; ``0x2122.ch`` U16 FM; ``0x2106.1..16`` S32
@@ -450,7 +451,7 @@ class RoboteqNode:
         value = self.traction.position_counts if ch == 1 else self.steer.position_counts
         if self.noise is not None:
             value += self.noise()
-        return int(round(value))
+        return ((int(round(value)) + 2**31) % 2**32) - 2**31  # a 32-bit counter wraps
 
     def fault_flags(self) -> int:
         return FF_ESTOP if self.estopped else 0
@@ -488,7 +489,7 @@ class RoboteqNode:
         self.state = NMT_OPERATIONAL if self.s.autostart else NMT_PRE_OPERATIONAL
         self._next_heartbeat_s = now_s + self.heartbeat_ms / 1000.0
         for p in self.tpdos:
-            p.next_due_s = now_s
+            p.next_due_s = 0.0
         return [(0x700 + self.n, b"\x00")]
 
     def on_frame(self, can_id: int, data: bytes, now_s: float) -> list[tuple[int, bytes]]:
@@ -515,7 +516,7 @@ class RoboteqNode:
         if cs == 0x01:
             self.state = NMT_OPERATIONAL
             for p in self.tpdos:
-                p.next_due_s = now_s
+                p.next_due_s = 0.0
         elif cs == 0x02:
             self.state = NMT_STOPPED
         elif cs == 0x80:
@@ -623,7 +624,11 @@ class RoboteqNode:
                         and not p.cob_id & 0x80000000 and p.mapping:
                     out.append((p.cob_id & 0x7FF, self._tpdo_payload(p)))
                     self.tpdo_count += 1
-                    p.next_due_s = max(p.next_due_s + p.event_timer_ms / 1000.0, now_s)
+                    period = p.event_timer_ms / 1000.0
+                    late = now_s - p.next_due_s
+                    # keep the cadence; (re)anchor at this send when starting or when far behind
+                    p.next_due_s = p.next_due_s + period if 0.0 <= late < period and p.next_due_s > 0.0 \
+                        else now_s + period
         return out
 
 

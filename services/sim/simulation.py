@@ -65,7 +65,7 @@ class Simulation:
         self.scan_source = ScanSource(
             world, self.robot, lambda: self.now_s,
             (spec.laser_mount_x_m, spec.laser_mount_y_m, spec.laser_mount_theta_rad),
-            cfg.laser_max_range_m, cfg.laser_noise_m, cfg.seed + 3)
+            cfg.laser_max_range_m, cfg.laser_noise_m, cfg.seed + 3)  # the only range noise (the emulator adds none)
 
     # ------------------------------------------------------------------ CAN
 
@@ -105,6 +105,8 @@ class Simulation:
         """Move the robot; False (and not moved) for non-finite values. Clears the collision latch."""
         if not all(math.isfinite(v) for v in (x, y, theta)):
             return False
+        turn = theta - self.robot.theta
         self.robot.teleport(x, y, theta)
+        self.imu.yaw_rad = (self.imu.yaw_rad + turn + math.pi) % (2 * math.pi) - math.pi  # carried: the gyro feels it
         self.robot.collided = self.world.circle_collides(x, y, self.footprint_radius_m)
         return True

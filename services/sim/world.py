@@ -10,10 +10,12 @@ Dynamic obstacles are rectangles outside the raster (so adding one costs nothing
 them analytically. They appear and vanish on a schedule (sim time) or on request.
 
 Ray casting marches every beam at once (numpy, vectorised over beams) through the raster: at each iteration a beam
-jumps by the larger of (a) the clearance from a precomputed Euclidean distance transform (no solid cell closer than
-``edt - sqrt(2)`` cells, so the jump cannot cross one) and (b) the distance to leave its current cell (an exact DDA
-step). Far from walls beams jump metres at a time; near walls they walk cell by cell and stop exactly on the face
-of the first solid cell, as a grid-exact DDA would.
+jumps by the largest of three distances that are all free of solid cells: (a) the clearance from a precomputed
+Euclidean distance transform (no solid cell centre closer than ``edt``, so nothing within ``edt - sqrt(2)`` cells),
+(b) the distance to leave its current row, or to reach the end of the free run of that row in its x direction,
+whichever comes first, and (c) the same along its column. (b) and (c) include the exact DDA step to the next
+cell, so beams stop exactly on the face of the first solid cell, as a grid-exact DDA would; far from walls they
+jump metres at a time and along walls a row or column at a time.
 """
 
 from __future__ import annotations
@@ -78,7 +80,9 @@ class World:
         self._solid_flat = padded.ravel()
         edt = ndimage.distance_transform_edt(~padded).astype(np.float32)  # cells, centre to nearest solid centre
         self._edt_flat = edt.ravel()
-        self._clear_flat = np.maximum(edt - SQRT2, 0.0).astype(np.float64).ravel()
+        # free cells: the clearance in cells (>= 0); solid cells: -1, so one lookup tells both
+        self._clear_flat = np.where(padded, -1.0, np.maximum(edt - SQRT2, 0.0)).astype(np.float64).ravel()
+        self._runs_flat = _free_run_table(padded)
         self._active_rects = np.zeros((0, 4))
         self._refresh_rects()
 
@@ -197,7 +201,7 @@ class World:
         return ranges
 
     def _march(self, gx: float, gy: float, angles: np.ndarray, max_t: float, max_iterations: int,
-               compact_every: int = 8) -> np.ndarray:
+               compact_every: int = 6) -> np.ndarray:
         """Distances (cells) to the first solid cell from padded cell coordinates (gx, gy); > max_t: no hit.
 
         Beams are stacked as 2 x n arrays; a finished beam stops advancing (its step is multiplied by 0) and the
@@ -210,10 +214,17 @@ class World:
         d[d == 0.0] = 1e-12  # an axis-parallel beam: its exit distance along that axis becomes huge
         inv_d = 1.0 / d
         side = (d > 0.0).astype(np.float64)  # the cell face a beam exits through: floor + 1 when moving up
+        # a beam moving down an axis that sits exactly on a cell face is in the cell below that face
+        nudge = np.where(d < 0.0, -1e-9, 0.0)
+        cells = self._solid_flat.size
+        # where each beam's free-run lengths live in the run table: x tables first, then y; minus, then plus
+        run_offset = np.empty((2, n), dtype=np.intp)
+        run_offset[0] = (d[0] > 0.0) * cells
+        run_offset[1] = 2 * cells + (d[1] > 0.0) * cells
         origin = np.array([[gx], [gy]])
         weights = np.array([1.0, float(self._cols_p)])
-        solid = self._solid_flat
         clear = self._clear_flat
+        runs = self._runs_flat
         t = np.zeros(n)
         out = np.empty(n)
         idx = np.arange(n)
@@ -221,13 +232,17 @@ class World:
         for it in range(1, max_iterations + 1):
             p = d * t
             p += origin
-            cell = np.floor(p)
+            cell = np.floor(p + nudge)
             flat = (weights @ cell).astype(np.intp)
-            hit = solid.take(flat)
+            clearance = clear.take(flat)
+            hit = clearance < 0.0
             exit_ = cell + side
             exit_ -= p
-            exit_ *= inv_d
-            step = np.maximum(exit_.min(axis=0), clear.take(flat))
+            exit_ *= inv_d  # distance to leave the cell along x (row 0) and along y (row 1)
+            run_end = runs.take(run_offset + flat) * inv_d
+            run_end += exit_  # distance to the end of the free run along x (row 0) and along y (row 1)
+            np.minimum(run_end, exit_[::-1], out=run_end)  # ... but only while still in this row / column
+            step = np.maximum(run_end.max(axis=0), clearance)
             step += 1e-6
             np.greater(alive, hit, out=alive)  # alive and not hit
             step *= alive
@@ -238,8 +253,9 @@ class World:
                     break
                 if live.sum() < 0.7 * live.size:
                     out[idx] = t
-                    idx, t, d, inv_d, side, alive = idx[live], t[live], d[:, live], inv_d[:, live], side[:, live], \
-                        alive[live]
+                    idx, t, alive = idx[live], t[live], alive[live]
+                    d, inv_d, side, nudge = d[:, live], inv_d[:, live], side[:, live], nudge[:, live]
+                    run_offset = run_offset[:, live]
         out[idx] = t
         return out
 
@@ -386,6 +402,29 @@ def _check_rect(rect, what: str) -> tuple[float, float, float, float]:  # noqa: 
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or vals[0] >= vals[2] or vals[1] >= vals[3]:
         raise WorldError(f"{what}: expected finite [x_min, y_min, x_max, y_max] with min < max, got {rect!r}")
     return vals  # type: ignore[return-value]
+
+
+def _free_run_table(solid: np.ndarray) -> np.ndarray:
+    """Signed extra free cells beyond the current one, per cell, for the four axis directions, flattened:
+    [-x, +x, -y, +y] blocks of ``solid.size``; minus directions are negated so that ``face + table`` is the face
+    where the free run ends (a solid cell gets 0)."""
+    free = ~solid
+
+    def run_towards_plus_col(f: np.ndarray) -> np.ndarray:
+        out = np.zeros(f.shape, dtype=np.float32)
+        acc = np.zeros(f.shape[0], dtype=np.float32)
+        for c in range(f.shape[1] - 1, -1, -1):
+            acc = np.where(f[:, c], acc + 1.0, 0.0).astype(np.float32)
+            out[:, c] = acc
+        return out
+
+    x_plus = run_towards_plus_col(free)
+    x_minus = run_towards_plus_col(free[:, ::-1])[:, ::-1]
+    y_plus = run_towards_plus_col(free.T).T
+    y_minus = run_towards_plus_col(free.T[:, ::-1])[:, ::-1].T
+    extra = [-np.maximum(x_minus - 1.0, 0.0), np.maximum(x_plus - 1.0, 0.0),
+             -np.maximum(y_minus - 1.0, 0.0), np.maximum(y_plus - 1.0, 0.0)]
+    return np.concatenate([e.ravel() for e in extra]).astype(np.float32)
 
 
 def _ray_rects(x: float, y: float, angles: np.ndarray, rects: np.ndarray, max_range_m: float) -> np.ndarray:

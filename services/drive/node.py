@@ -1,0 +1,185 @@
+"""The drive service's asyncio shell: wires the control loop to Zenoh (cmd_vel in; odom, wheels, imu out; queries).
+
+Topics: subscribes ``cmd_vel`` (on Zenoh's thread, straight into the loop), and ``clock`` in sim mode; publishes
+``odom`` and ``wheels`` at ``drive.publish_hz`` (from the loop thread) and ``imu`` when ``drive.imu_port`` is set.
+Queries (explicit ``Reply``): ``drive/enable``, ``drive/disable``, ``drive/estop`` (``!EX`` on every controller),
+``drive/release`` (``!MG``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sys
+import time
+
+from proto.messages import Empty, Imu, ModuleState, Odometry, Pose2D, Reply, Twist2D, WheelStates
+from services.common.service import ServiceContext
+from services.drive.canlink import RoboteqLink
+from services.drive.config import DriveConfig
+from services.drive.controller import DriveController, WheelOdometry
+from services.drive.imu import ImuSample, RazorReader
+from services.drive.kinematics import SwerveKinematics
+from services.drive.limits import TwistLimits
+from services.drive.loop import DriveLoop, LoopSettings, SimTicker, Snapshot, WallTicker
+
+log = logging.getLogger("zagv.drive")
+
+#: odometry covariances (x, y, theta), diagonal: wheel odometry is good over short steps, drifts over distance
+POSE_COVARIANCE = [1e-3, 0.0, 0.0, 0.0, 1e-3, 0.0, 0.0, 0.0, 2e-3]
+TWIST_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4]
+
+
+def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> DriveLoop:  # noqa: ANN001
+    """The drive's control loop from the robot spec and the [drive] table (raises ValueError on bad config)."""
+    if len(cfg.node_ids) != len(ctx_robot.modules):
+        raise ValueError(f"drive.node_ids has {len(cfg.node_ids)} entries but [robot] has "
+                         f"{len(ctx_robot.modules)} modules")
+    kinematics = SwerveKinematics([(m.x_m, m.y_m) for m in ctx_robot.modules])
+    units = cfg.motor_units()
+    controller = DriveController(kinematics, units, TwistLimits.from_robot(ctx_robot), cfg.steering_limits(),
+                                 wheel_speed_max_mps=ctx_robot.wheel_speed_max_mps,
+                                 hold_speed_mps=cfg.hold_speed_mps, cosine_scaling=cfg.cosine_scaling)
+    odometry = WheelOdometry(kinematics, units, max_step_m=cfg.max_odom_step_m)
+    settings = LoopSettings(cmd_timeout_s=cfg.cmd_timeout_s, publish_period_s=1.0 / cfg.publish_hz,
+                            reconnect_initial_s=cfg.reconnect_initial_s, reconnect_max_s=cfg.reconnect_max_s,
+                            fault_mask=cfg.fault_mask, imu_yaw_fusion=cfg.imu_yaw_fusion,
+                            imu_yaw_weight=cfg.imu_yaw_weight, imu_timeout_s=cfg.imu_timeout_s,
+                            wake_on_command=cfg.wake_on_command, realtime_priority=cfg.realtime_priority,
+                            rpdo_refresh_s=cfg.rpdo_refresh_s)
+    link_settings = cfg.link_settings()
+    return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings, ticker.now), ticker, settings,
+                     enabled=cfg.auto_enable)
+
+
+def wheel_states(snap: Snapshot) -> WheelStates:
+    modules = []
+    for i, cmd in enumerate(snap.result.modules):
+        fb = snap.feedback[i] if i < len(snap.feedback) else None
+        modules.append(ModuleState(
+            steer_rad=snap.measured_angles[i] if fb else 0.0,
+            speed_mps=snap.measured_speeds[i] if fb else 0.0,
+            steer_cmd_rad=cmd.angle_rad, speed_cmd_mps=cmd.speed_mps,
+            traction_amps=fb.traction_amps if fb else 0.0, steer_amps=fb.steer_amps if fb else 0.0,
+            traction_counts=fb.traction_counts if fb else 0, steer_counts=fb.steer_counts if fb else 0,
+            fault_flags=fb.fault_flags if fb else 0, status_flags=fb.status_flags if fb else 0))
+    return WheelStates(stamp=snap.stamp, modules=modules, slip_residual_mps=snap.residual_mps,
+                       enabled=snap.enabled, estopped=snap.estopped, link_ok=snap.link_ok, fault=snap.fault,
+                       loop_hz=snap.loop_hz, loop_jitter_p99_ms=snap.jitter_p99_ms, loop_overruns=snap.overruns)
+
+
+def odometry_message(snap: Snapshot) -> Odometry:
+    x, y, theta = snap.pose
+    t = snap.twist
+    return Odometry(stamp=snap.stamp, pose=Pose2D(x=x, y=y, theta=theta),
+                    twist=Twist2D(vx=t.vx, vy=t.vy, wz=t.wz, stamp=snap.stamp),
+                    pose_covariance=list(POSE_COVARIANCE), twist_covariance=list(TWIST_COVARIANCE))
+
+
+async def run(ctx: ServiceContext) -> None:
+    cfg: DriveConfig = ctx.config["drive"]
+    logging.getLogger("canopen").setLevel(logging.WARNING)
+    logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)  # our LinkError says what failed
+    logging.getLogger("can").setLevel(logging.WARNING)
+    node = ctx.node
+    sim = bool(getattr(ctx.clock, "is_sim", False))
+    ticker: WallTicker | SimTicker = SimTicker(cfg.rate_hz) if sim else WallTicker(cfg.rate_hz, cfg.spin_s)
+    if not sim:
+        # the loop thread must get the GIL back quickly after its sleep: shorten the interpreter's switch interval
+        sys.setswitchinterval(min(sys.getswitchinterval(), max(1e-4, 0.25 / cfg.rate_hz)))
+    loop = build_loop(ctx.robot, cfg, ticker)
+    odom_pub = node.publisher("odom")
+    wheels_pub = node.publisher("wheels")
+
+    def publish(snap: Snapshot) -> None:  # loop thread
+        odom_pub.put(odometry_message(snap))
+        wheels_pub.put(wheel_states(snap))
+        node.extra_stats.update(link_ok=snap.link_ok, fault=snap.fault, enabled=snap.enabled,
+                                estopped=snap.estopped, loop_hz=round(snap.loop_hz, 2),
+                                loop_jitter_p99_ms=round(snap.jitter_p99_ms, 4), loop_overruns=snap.overruns,
+                                reconnects=loop.reconnects, cmd_rejected=loop.cmd_rejected,
+                                refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4),
+                                can_frames_sent=link.frames_sent if (link := loop.link) else 0,
+                                can_error_frames=link.error_frames if link else 0,
+                                cmd_to_bus_p50_ms=round(loop.cmd_latency_ms(50), 4),
+                                cmd_to_bus_p99_ms=round(loop.cmd_latency_ms(99), 4))
+
+    loop.publish = publish
+    rejected_logged = [0.0]
+
+    def on_cmd(msg: Twist2D) -> None:  # Zenoh thread
+        if not loop.set_command(msg.vx, msg.vy, msg.wz):
+            now = time.monotonic()
+            if now - rejected_logged[0] > 1.0:
+                rejected_logged[0] = now
+                log.error("cmd_vel refused: non-finite value in (vx=%r, vy=%r, wz=%r) (%d refused so far)",
+                          msg.vx, msg.vy, msg.wz, loop.cmd_rejected)
+
+    if sim:
+        node.subscribe("clock", lambda c: ticker.advance(c.stamp), on_zenoh_thread=True)
+    node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
+
+    async def enable(_: Empty) -> Reply:
+        if loop.estopped:
+            return Reply(ok=False, message="e-stop active: release it first (drive/release)")
+        if not loop.link_ok:
+            return Reply(ok=False, message=f"CAN link down: {loop.link_fault}")
+        loop.controller.reset()
+        loop.enabled = True
+        return Reply(ok=True, message="drive enabled")
+
+    async def disable(_: Empty) -> Reply:
+        loop.enabled = False
+        return Reply(ok=True, message="drive disabled: wheels stopped")
+
+    async def estop(_: Empty) -> Reply:
+        loop.estopped = True  # the next cycle commands zero, whatever the controllers answer
+        link = loop.link
+        if link is None or not loop.link_ok:
+            return Reply(ok=True, message=f"e-stop latched in drive; controllers unreachable ({loop.link_fault}), "
+                                          "!EX is sent when the link returns")
+        failures = await asyncio.to_thread(link.estop)
+        if failures:
+            return Reply(ok=True, message="e-stop latched in drive; !EX failed on: " + "; ".join(failures))
+        return Reply(ok=True, message="e-stop active on every controller (!EX)")
+
+    async def release(_: Empty) -> Reply:
+        if not loop.estopped:
+            return Reply(ok=True, message="no e-stop active")
+        link = loop.link
+        if link is None or not loop.link_ok:
+            return Reply(ok=False, message=f"CAN link down, cannot release the controllers: {loop.link_fault}")
+        failures = await asyncio.to_thread(link.release)
+        if failures:
+            return Reply(ok=False, message="!MG failed on: " + "; ".join(failures))
+        loop.controller.reset()
+        loop.estopped = False
+        return Reply(ok=True, message="e-stop released (!MG)")
+
+    node.queryable("drive/enable", enable)
+    node.queryable("drive/disable", disable)
+    node.queryable("drive/estop", estop)
+    node.queryable("drive/release", release)
+
+    imu_reader = None
+    if cfg.imu_port:
+        imu_pub = node.publisher("imu")
+
+        def on_imu(sample: ImuSample) -> None:  # IMU thread
+            loop.set_imu_yaw_rate(sample.angular_velocity[2])
+            imu_pub.put(Imu(stamp=ctx.clock.now(), yaw=sample.yaw, pitch=sample.pitch, roll=sample.roll,
+                            angular_velocity=list(sample.angular_velocity),
+                            linear_acceleration=list(sample.linear_acceleration)))
+
+        imu_reader = RazorReader(cfg.imu_port, cfg.imu_baud, on_imu)
+        imu_reader.start()
+
+    loop.start()
+    log.info("control loop at %.0f Hz on the %s clock, CAN %s %s", cfg.rate_hz, "sim" if sim else "wall",
+             cfg.can_interface, cfg.can_channel)
+    try:
+        await ctx.stop.wait()
+    finally:
+        await asyncio.to_thread(loop.stop)
+        if imu_reader is not None:
+            await asyncio.to_thread(imu_reader.stop)

@@ -1,0 +1,644 @@
+"""Adaptive Monte-Carlo localization (AMCL) in numpy: the particle filter of ROS/Nav2 amcl, without I/O.
+
+- Motion: Nav2's omni-corrected odometry model (alpha1..alpha5), applied to every particle per filter update.
+- Sensor: the likelihood-field model. Each map cell holds ``pz^3`` with ``pz = z_hit exp(-d^2 / (2 sigma_hit^2)) +
+  z_rand / range_max`` (``d`` the distance to the nearest occupied cell, capped at ``laser_likelihood_max_dist``);
+  a particle's weight is multiplied by ``1 + sum over beams of pz^3`` (amcl's sum-of-cubes heuristic), or with
+  ``laser_model_type = "likelihood_field_prob"`` by the product of the beams' ``pz`` (no beam skipping). Beams are
+  subsampled with Nav2's step ``(n - 1) // (max_beams - 1)``; endpoints beyond the map use the capped distance.
+- Resampling: low-variance (systematic) resampling every ``resample_interval`` sensor updates, KLD-sampling the
+  population between ``min_particles`` and ``max_particles`` (bins 0.5 m x 0.5 m x 10 deg, ``pf_err``, ``pf_z``),
+  and random particles over free space with probability ``max(0, 1 - w_fast / w_slow)`` (``recovery_alpha_slow``,
+  ``recovery_alpha_fast``; 0 disables it). w_slow/w_fast average the per-beam likelihood; with
+  ``recovery_sensor_reset`` the random particles are drawn from many uniform candidates in proportion to their
+  likelihood for the current scan (sensor-resetting localization, Lenser & Veloso 2000).
+- Estimate: the heaviest cluster of adjacent occupied bins; its weighted mean and covariance.
+- Gates: a filter update needs ``update_min_d`` (per axis, odom frame) or ``update_min_a`` of odometry motion.
+
+Hot paths use preallocated buffers (``out=``), so an update allocates little beyond small per-particle arrays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import msgspec
+import numpy as np
+from scipy import ndimage
+
+from services.localization.map_io import FREE, OccupancyMap
+
+#: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg
+BIN_XY_M = 0.5
+BIN_THETA_RAD = math.radians(10.0)
+OCCUPIED_MIN = 65
+
+
+class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
+    """AMCL parameters; names follow Nav2's ``amcl`` node (units: m, rad).
+
+    Defaults are tuned for this robot (LMS111, 12 mm range noise; slow omni base) and differ from Nav2's where
+    measured accuracy called for it: ``laser_model_type`` likelihood_field_prob (Nav2: likelihood_field),
+    ``z_hit``/``z_rand`` 0.9/0.1 (0.5/0.5), ``sigma_hit`` 0.1 (0.2), ``update_min_d``/``update_min_a`` 0.1/0.1
+    (0.25/0.2), ``recovery_alpha_slow``/``_fast`` 0.001/0.1 (ROS 1's; Nav2 disables recovery), ``laser_max_range``
+    -1 = the scan's range_max (Nav2: 100). ``global_localization_particles`` and ``recovery_sensor_reset`` are ours.
+    """
+
+    min_particles: int = 500
+    max_particles: int = 2000
+    pf_err: float = 0.05
+    pf_z: float = 0.99
+    recovery_alpha_slow: float = 0.001
+    recovery_alpha_fast: float = 0.1
+    update_min_d: float = 0.1
+    update_min_a: float = 0.1
+    resample_interval: int = 1
+    max_beams: int = 60
+    laser_model_type: Literal["likelihood_field", "likelihood_field_prob"] = "likelihood_field_prob"
+    z_hit: float = 0.9
+    z_rand: float = 0.1
+    sigma_hit: float = 0.1
+    laser_likelihood_max_dist: float = 2.0
+    laser_min_range: float = -1.0
+    laser_max_range: float = -1.0
+    alpha1: float = 0.2
+    alpha2: float = 0.2
+    alpha3: float = 0.2
+    alpha4: float = 0.2
+    alpha5: float = 0.2
+    random_seed: int = -1
+    #: particles for global localization (Nav2 uses max_particles); more hypotheses for the first scan help a
+    #: large or self-similar map, and cost only that one update (the sensor model runs in max_particles chunks)
+    global_localization_particles: int = 20000
+    #: recovery particles are drawn from that many uniform candidates weighted by the current scan (sensor
+    #: resetting) rather than uniformly, so that a kidnapped robot is found in a large map
+    recovery_sensor_reset: bool = True
+
+    def validate(self) -> None:
+        """Raise ValueError naming the first bad parameter."""
+        if not 1 <= self.min_particles <= self.max_particles:
+            raise ValueError(f"need 1 <= min_particles ({self.min_particles}) <= max_particles ({self.max_particles})")
+        checks = {
+            "pf_err": self.pf_err > 0, "pf_z": self.pf_z > 0, "resample_interval": self.resample_interval >= 1,
+            "max_beams": self.max_beams >= 2, "sigma_hit": self.sigma_hit > 0,
+            "laser_likelihood_max_dist": self.laser_likelihood_max_dist > 0,
+            "z_hit": self.z_hit >= 0, "z_rand": self.z_rand >= 0,
+            "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
+            "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
+            "update_min_d": self.update_min_d >= 0, "update_min_a": self.update_min_a >= 0,
+        }
+        for i in range(1, 6):
+            checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not ok or not math.isfinite(value):
+                raise ValueError(f"AMCL parameter {name} = {value!r} is out of range")
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Angle(s) wrapped to [-pi, pi)."""
+    return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi if isinstance(a, np.ndarray) else \
+        (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
+    """SE(2) composition a ∘ b (b expressed in a's frame)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+
+
+def inverse(a: tuple[float, float, float]) -> tuple[float, float, float]:
+    """SE(2) inverse."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap_angle(-a[2]))
+
+
+def beam_indices(n_ranges: int, max_beams: int) -> np.ndarray:
+    """Nav2/amcl beam subsampling: every ``step = (n - 1) // (max_beams - 1)`` th beam (at least 1)."""
+    step = max(1, (n_ranges - 1) // max(1, max_beams - 1))
+    return np.arange(0, n_ranges, step)
+
+
+def kld_limit(k: int, pf_err: float, pf_z: float, min_particles: int, max_particles: int) -> int:
+    """pf.c's ``pf_resample_limit``: particles needed for ``k`` occupied bins (Wilson-Hilferty approximation).
+
+    One bin needs no more than ``min_particles`` (the chi-square bound is 0); pf.c returns ``max_particles`` there,
+    which makes a tightly converged filter the most expensive one.
+    """
+    if k <= 1:
+        return min_particles
+    b = 2.0 / (9.0 * (k - 1))
+    x = 1.0 - b + math.sqrt(b) * pf_z
+    n = math.ceil((k - 1) / (2.0 * pf_err) * x * x * x)
+    return min(max(n, min_particles), max_particles)
+
+
+class LikelihoodField:
+    """Per-cell ``pz^3`` (``likelihood_field``) or ``log pz`` (``likelihood_field_prob``), padded by one cell that
+    holds the beyond-the-map value."""
+
+    def __init__(self, grid: OccupancyMap, params: AmclParams) -> None:
+        self.grid = grid
+        occupied = grid.data >= OCCUPIED_MIN
+        # obstacle surface: occupied cells next to a cell that is not occupied. Distances are measured to the
+        # surface from both sides, so a beam ending deep inside a solid block scores like one ending short of it
+        # (rendered worlds are solid outside their free space; thin-walled maps give amcl's field unchanged).
+        surface = occupied & ndimage.binary_dilation(~occupied, structure=np.ones((3, 3), dtype=bool))
+        if surface.any():
+            # from a cell's centre to the surface cell's edge, so a beam ending on a wall scores as a hit on
+            # either side of the cell boundary
+            centre_m = ndimage.distance_transform_edt(~surface) * grid.resolution
+            dist_m = np.maximum(centre_m - 0.5 * grid.resolution, 0.0)
+        else:
+            dist_m = np.full(grid.data.shape, np.inf)
+        self.max_dist = params.laser_likelihood_max_dist
+        self.distance_m = np.minimum(dist_m, self.max_dist)
+        self.params = params
+        self._range_max: float | None = None
+        self.table = np.empty((grid.height + 2, grid.width + 2), dtype=np.float32)
+        self.flat = self.table.reshape(-1)
+
+    def prepare(self, range_max: float) -> None:
+        """(Re)build the table for a sensor whose maximum range is ``range_max`` m (z_rand's density)."""
+        if self._range_max == range_max:
+            return
+        p = self.params
+        rand = p.z_rand / range_max if range_max > 0 else 0.0
+        pz = p.z_hit * np.exp(-(self.distance_m ** 2) / (2.0 * p.sigma_hit ** 2)) + rand
+        outside = p.z_hit * math.exp(-(self.max_dist ** 2) / (2.0 * p.sigma_hit ** 2)) + rand
+        if p.laser_model_type == "likelihood_field_prob":
+            self.table.fill(math.log(max(outside, 1e-300)))
+            self.table[1:-1, 1:-1] = np.log(np.maximum(pz, 1e-300))
+        else:
+            self.table.fill(outside ** 3)
+            self.table[1:-1, 1:-1] = pz ** 3
+        self._range_max = range_max
+
+
+@dataclass
+class Estimate:
+    """The filter's pose (x, y, theta) with its 3x3 covariance, the cluster's weight and the particle count."""
+
+    pose: tuple[float, float, float]
+    covariance: np.ndarray
+    weight: float
+    particles: int
+
+
+class ParticleFilter:
+    """Particles (x [m], y [m], theta [rad]) in the map frame with normalised weights; buffers preallocated."""
+
+    def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None) -> None:
+        params.validate()
+        self.grid = grid
+        self.params = params
+        self.rng = rng or np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
+        self.field = LikelihoodField(grid, params)
+        free_rows, free_cols = np.nonzero(grid.data == FREE)
+        if free_rows.size == 0:
+            raise ValueError("the map has no free cell to place particles in")
+        self._free_cells = (free_cols.astype(np.float64), free_rows.astype(np.float64))
+        m = params.max_particles
+        capacity = max(m, params.global_localization_particles)
+        self.poses = np.zeros((capacity, 3))
+        self._poses_next = np.zeros((capacity, 3))
+        self.weights = np.full(capacity, 1.0 / m)
+        self.n = m
+        self.w_slow = 0.0
+        self.w_fast = 0.0
+        self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
+                                    for k in range(m + 1)], dtype=np.int64)
+        self._counts = np.arange(1, m + 1)
+        self._noise = np.empty((capacity, 3))
+        self._percol = np.empty((7, capacity))
+        self._beam_capacity = 0
+        self._last_beams: tuple[np.ndarray, np.ndarray, tuple[float, float, float]] | None = None
+        self._ensure_beam_buffers(params.max_beams + 1)
+        self._random_poses(self.poses)
+
+    # ------------------------------------------------------------------ buffers and helpers
+
+    def _ensure_beam_buffers(self, beams: int) -> None:
+        if beams <= self._beam_capacity:
+            return
+        size = self.params.max_particles * beams
+        # float32 endpoints (grid cells; 1e-4 cell precision) halve the memory traffic of the N x B passes
+        self._bx = np.empty(size, dtype=np.float32)
+        self._by = np.empty(size, dtype=np.float32)
+        self._tmp = np.empty(size, dtype=np.float32)
+        self._ix = np.empty(size, dtype=np.intp)
+        self._iy = np.empty(size, dtype=np.intp)
+        self._vals = np.empty(size, dtype=np.float32)
+        self._beam_capacity = beams
+
+    def _random_poses(self, out: np.ndarray) -> None:
+        """Fill ``out`` (k x 3) with poses uniform over the map's free cells and headings."""
+        k = out.shape[0]
+        if k == 0:
+            return
+        cols, rows = self._free_cells
+        pick = self.rng.integers(0, cols.size, size=k)
+        jitter = self.rng.random((k, 2))
+        x, y = self.grid.cell_to_world(cols[pick] + jitter[:, 0] - 0.5, rows[pick] + jitter[:, 1] - 0.5)
+        out[:, 0] = x
+        out[:, 1] = y
+        out[:, 2] = self.rng.uniform(-math.pi, math.pi, size=k)
+
+    def _set_uniform_weights(self, n: int) -> None:
+        self.n = n
+        self.weights[:n] = 1.0 / n
+
+    # ------------------------------------------------------------------ initialisation
+
+    def init_gaussian(self, pose: tuple[float, float, float], covariance: np.ndarray) -> None:
+        """``max_particles`` particles drawn from N(pose, covariance) (3x3 over x, y, theta)."""
+        cov = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
+        cov = 0.5 * (cov + cov.T)
+        vals, vecs = np.linalg.eigh(cov)
+        if not np.all(np.isfinite(vals)) or vals.min() < -1e-12:
+            raise ValueError(f"initial covariance is not positive semi-definite: {cov.tolist()}")
+        n = self.params.max_particles
+        draws = self.rng.standard_normal((n, 3)) * np.sqrt(np.clip(vals, 0.0, None))
+        self.poses[:n] = np.asarray(pose, dtype=np.float64) + draws @ vecs.T
+        self.poses[:n, 2] = wrap_angle(self.poses[:n, 2])
+        self._set_uniform_weights(n)
+        self.w_slow = self.w_fast = 0.0
+
+    def init_uniform(self) -> None:
+        """Global localization: ``global_localization_particles`` (at least ``max_particles``) particles uniform over
+        free space; the next resampling brings the population back within [min_particles, max_particles]."""
+        n = max(self.params.max_particles, self.params.global_localization_particles)
+        self._random_poses(self.poses[:n])
+        self._set_uniform_weights(n)
+        self.w_slow = self.w_fast = 0.0
+
+    # ------------------------------------------------------------------ motion
+
+    def motion_update(self, odom_pose: tuple[float, float, float], delta: tuple[float, float, float]) -> None:
+        """Omni-corrected model: ``delta`` = (dx, dy, dtheta) of odometry in the odom frame, ending at ``odom_pose``.
+
+        sigma_trans = sqrt(a3 t^2 + a4 r^2), sigma_rot = sqrt(a1 r^2 + a2 t^2), sigma_strafe = sqrt(a4 r^2 +
+        a5 t^2); each particle moves by the noisy translation along its bearing plus a noisy strafe across it.
+        """
+        p = self.params
+        dx, dy, dth = delta
+        trans2 = dx * dx + dy * dy
+        rot2 = dth * dth
+        sd = np.array([math.sqrt(p.alpha3 * trans2 + p.alpha4 * rot2),
+                       math.sqrt(p.alpha1 * rot2 + p.alpha2 * trans2),
+                       math.sqrt(p.alpha4 * rot2 + p.alpha5 * trans2)])
+        n = self.n
+        noise = self._noise[:n]
+        self.rng.standard_normal(out=noise)
+        noise *= sd
+        trans_hat = noise[:, 0]
+        trans_hat += math.sqrt(trans2)
+        old_theta = odom_pose[2] - dth
+        bearing = self._percol[0, :n]
+        np.add(self.poses[:n, 2], wrap_angle(math.atan2(dy, dx) - old_theta), out=bearing)
+        cb, sb = self._percol[1, :n], self._percol[2, :n]
+        np.cos(bearing, out=cb)
+        np.sin(bearing, out=sb)
+        strafe = noise[:, 2]
+        x, y, th = self.poses[:n, 0], self.poses[:n, 1], self.poses[:n, 2]
+        x += trans_hat * cb + strafe * sb
+        y += trans_hat * sb - strafe * cb
+        th += noise[:, 1]
+        th += dth
+        self.poses[:n, 2] = wrap_angle(th)
+
+    # ------------------------------------------------------------------ sensor
+
+    def sensor_update(self, ranges: np.ndarray, bearings: np.ndarray, mount: tuple[float, float, float],
+                      range_max: float) -> float:
+        """Weight particles by the likelihood field for beams (range m, bearing rad in the laser frame).
+
+        ``ranges``/``bearings`` must already be subsampled and valid (finite, inside the range limits).
+        Returns the per-beam mean likelihood that feeds the recovery filters (w_slow, w_fast).
+        """
+        p = self.params
+        n = self.n
+        b = int(ranges.size)
+        if b == 0:
+            return 0.0
+        self._ensure_beam_buffers(b)
+        self.field.prepare(range_max)
+        res = self.grid.resolution
+        rc = (ranges * np.cos(bearings) / res).astype(np.float32)
+        rs = (ranges * np.sin(bearings) / res).astype(np.float32)
+        self._last_beams = (rc, rs, mount)
+        like = self._percol[5, :n]
+        self._likelihood_sums(self.poses, n, like)
+        if p.laser_model_type == "likelihood_field_prob":
+            # product of beam likelihoods, exp(sum log pz), shifted by its maximum to stay in range
+            log_max = float(like.max())
+            like -= log_max
+            np.exp(like, out=like)
+        else:
+            like += 1.0
+        w = self.weights[:n]
+        w *= like
+        total = float(w.sum())
+        if not math.isfinite(total) or total <= 0.0:
+            self._set_uniform_weights(n)
+            return 0.0
+        w /= total
+        # weights of hopeless particles underflow towards subnormal numbers, which make every later operation on
+        # them ~100x slower: flush them to zero
+        w[w < 1e-200] = 0.0
+        # w_avg per beam, so that the recovery filters compare scans with different numbers of valid returns:
+        # the weighted mean of pz^3 per beam, or the per-beam geometric mean of pz for the product model
+        if p.laser_model_type == "likelihood_field_prob":
+            w_avg = math.exp((log_max + math.log(total)) / b)
+        else:
+            w_avg = (total - 1.0) / b
+        if self.w_slow == 0.0:
+            self.w_slow = self.w_fast = w_avg
+        else:
+            self.w_slow += p.recovery_alpha_slow * (w_avg - self.w_slow)
+            self.w_fast += p.recovery_alpha_fast * (w_avg - self.w_fast)
+        return w_avg
+
+    def _likelihood_sums(self, poses: np.ndarray, n: int, out: np.ndarray) -> None:
+        """Per-pose sums over the last scan's beams for poses[:n], in chunks of max_particles (buffer size)."""
+        rc, rs, mount = self._last_beams
+        chunk = self.params.max_particles
+        for start in range(0, n, chunk):
+            stop = min(n, start + chunk)
+            self._beam_sums(poses, start, stop, rc, rs, mount, out[start:stop])
+
+    def _beam_sums(self, poses: np.ndarray, start: int, stop: int, rc: np.ndarray, rs: np.ndarray,
+                   mount: tuple[float, float, float], out: np.ndarray) -> None:
+        """Sum of the table values at the beam endpoints of poses start..stop-1 (beams in grid cells)."""
+        grid = self.grid
+        res = grid.resolution
+        ox, oy, oyaw = grid.origin
+        c0, s0 = math.cos(oyaw), math.sin(oyaw)
+        mx, my, mth = mount
+        n = stop - start
+        b = rc.size
+        # laser pose of each particle, in grid cells (+1 for the padding border)
+        th = poses[start:stop, 2]
+        cth, sth = self._percol[0, :n], self._percol[1, :n]
+        np.cos(th, out=cth)
+        np.sin(th, out=sth)
+        lx = poses[start:stop, 0] + cth * mx - sth * my - ox
+        ly = poses[start:stop, 1] + sth * mx + cth * my - oy
+        gx = (c0 * lx + s0 * ly) / res + 1.0
+        gy = (-s0 * lx + c0 * ly) / res + 1.0
+        ga = self._percol[2, :n]
+        np.add(th, mth - oyaw, out=ga)
+        cga, sga = self._percol[3, :n], self._percol[4, :n]
+        np.cos(ga, out=cga)
+        np.sin(ga, out=sga)
+        cga, sga = cga.astype(np.float32), sga.astype(np.float32)
+        gx, gy = gx.astype(np.float32), gy.astype(np.float32)
+        size = n * b
+        bx = self._bx[:size].reshape(n, b)
+        by = self._by[:size].reshape(n, b)
+        tmp = self._tmp[:size].reshape(n, b)
+        ix = self._ix[:size].reshape(n, b)
+        iy = self._iy[:size].reshape(n, b)
+        vals = self._vals[:size].reshape(n, b)
+        # endpoint = laser + R(ga) (rc, rs)
+        np.multiply(cga[:, None], rc[None, :], out=bx)
+        np.multiply(sga[:, None], rs[None, :], out=tmp)
+        bx -= tmp
+        bx += gx[:, None]
+        np.multiply(sga[:, None], rc[None, :], out=by)
+        np.multiply(cga[:, None], rs[None, :], out=tmp)
+        by += tmp
+        by += gy[:, None]
+        width2 = grid.width + 2
+        np.clip(bx, 0.0, width2 - 1.0, out=bx)
+        np.clip(by, 0.0, grid.height + 1.0, out=by)
+        np.copyto(ix, bx, casting="unsafe")
+        np.copyto(iy, by, casting="unsafe")
+        iy *= width2
+        iy += ix
+        np.take(self.field.flat, iy, out=vals)
+        np.sum(vals, axis=1, out=out)
+
+    # ------------------------------------------------------------------ resampling
+
+    def injection_probability(self) -> float:
+        """max(0, 1 - w_fast / w_slow): the share of random particles the next resampling draws."""
+        if self.w_slow <= 0.0 or self.params.recovery_alpha_slow <= 0.0 or self.params.recovery_alpha_fast <= 0.0:
+            return 0.0
+        return max(0.0, 1.0 - self.w_fast / self.w_slow)
+
+    def _recovery_poses(self, k: int) -> np.ndarray:
+        """``k`` random poses for recovery: uniform over free space, or (``recovery_sensor_reset``) drawn from
+        ``global_localization_particles`` uniform candidates in proportion to their likelihood for the last scan."""
+        p = self.params
+        candidates = max(k, p.global_localization_particles)
+        if not p.recovery_sensor_reset or self._last_beams is None or candidates <= k:
+            out = np.empty((k, 3))
+            self._random_poses(out)
+            return out
+        poses = np.empty((candidates, 3))
+        self._random_poses(poses)
+        sums = np.empty(candidates)
+        self._likelihood_sums(poses, candidates, sums)
+        if p.laser_model_type == "likelihood_field_prob":
+            weights = np.exp(sums - sums.max())
+        else:
+            weights = sums + 1.0
+        cumulative = np.cumsum(weights)
+        picks = np.searchsorted(cumulative, self.rng.random(k) * cumulative[-1], side="right")
+        return poses[np.minimum(picks, candidates - 1)]
+
+    def resample(self) -> int:
+        """Low-variance resampling with KLD-sampled population size and random injection; returns the new size."""
+        p = self.params
+        m = p.max_particles
+        n = self.n
+        cumulative = np.cumsum(self.weights[:n])
+        cumulative[-1] = 1.0
+        positions = (self.rng.random() + np.arange(m)) / m
+        picks = np.searchsorted(cumulative, positions, side="right")
+        np.minimum(picks, n - 1, out=picks)
+        self.rng.shuffle(picks)  # KLD takes a prefix: it must be a random subset, not the lowest indices
+        new = self._poses_next[:m]
+        np.take(self.poses, picks, axis=0, out=new)
+        w_diff = self.injection_probability()
+        if w_diff > 0.0:
+            inject = np.nonzero(self.rng.random(m) < w_diff)[0]
+            if inject.size:
+                new[inject] = self._recovery_poses(inject.size)
+            self.w_slow = self.w_fast = 0.0
+        keys = self._bin_keys(new)
+        _, first = np.unique(keys, return_index=True)
+        is_first = np.zeros(m, dtype=np.int64)
+        is_first[first] = 1
+        occupied_bins = np.cumsum(is_first)
+        done = np.nonzero(self._counts > self._kld_table[occupied_bins])[0]
+        count = int(done[0]) + 1 if done.size else m
+        count = min(max(count, p.min_particles), m)
+        self.poses, self._poses_next = self._poses_next, self.poses
+        self._set_uniform_weights(count)
+        return count
+
+    @staticmethod
+    def _bin_keys(poses: np.ndarray) -> np.ndarray:
+        bx = np.floor(poses[:, 0] / BIN_XY_M).astype(np.int64)
+        by = np.floor(poses[:, 1] / BIN_XY_M).astype(np.int64)
+        bt = np.floor((np.asarray(poses[:, 2]) + math.pi) / BIN_THETA_RAD).astype(np.int64)
+        return (bx * 1_000_003 + by) * 64 + bt
+
+    # ------------------------------------------------------------------ estimate
+
+    def estimate(self) -> Estimate:
+        """Weighted mean and covariance of the heaviest cluster of adjacent bins (pf_cluster_stats)."""
+        n = self.n
+        poses, w = self.poses[:n], self.weights[:n]
+        labels = cluster_labels(poses)
+        count = int(labels.max()) + 1
+        weight = np.bincount(labels, weights=w, minlength=count)
+        best = int(np.argmax(weight))
+        sel = labels == best
+        ws = w[sel]
+        total = float(ws.sum())
+        if total <= 0.0:
+            ws = np.full(int(sel.sum()), 1.0)
+            total = float(ws.size)
+        x, y, th = poses[sel, 0], poses[sel, 1], poses[sel, 2]
+        mx, my = float(ws @ x) / total, float(ws @ y) / total
+        mc, ms = float(ws @ np.cos(th)) / total, float(ws @ np.sin(th)) / total
+        cov = np.zeros((3, 3))
+        cov[0, 0] = float(ws @ (x * x)) / total - mx * mx
+        cov[1, 1] = float(ws @ (y * y)) / total - my * my
+        cov[0, 1] = cov[1, 0] = float(ws @ (x * y)) / total - mx * my
+        cov[2, 2] = -2.0 * math.log(max(math.hypot(mc, ms), 1e-12))
+        cov[0, 0], cov[1, 1] = max(cov[0, 0], 0.0), max(cov[1, 1], 0.0)
+        return Estimate((mx, my, math.atan2(ms, mc)), cov, total, n)
+
+
+def cluster_labels(poses: np.ndarray) -> np.ndarray:
+    """Cluster label (0..k-1) of each pose: connected components of occupied KLD bins, 26-neighbourhood, with the
+    heading bins wrapping around."""
+    nt = int(math.ceil(2.0 * math.pi / BIN_THETA_RAD))
+    bx = np.floor(poses[:, 0] / BIN_XY_M).astype(np.int64)
+    by = np.floor(poses[:, 1] / BIN_XY_M).astype(np.int64)
+    bt = np.clip(np.floor((wrap_angle(poses[:, 2]) + math.pi) / BIN_THETA_RAD).astype(np.int64), 0, nt - 1)
+    bx -= bx.min()
+    by -= by.min()
+    dense = np.zeros((int(bx.max()) + 1, int(by.max()) + 1, nt + 1), dtype=bool)
+    dense[bx, by, bt] = True
+    dense[:, :, nt] = dense[:, :, 0]
+    labels, count = ndimage.label(dense, structure=np.ones((3, 3, 3), dtype=bool))
+    parent = np.arange(count + 1)
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = int(parent[i])
+        return i
+
+    first, last = labels[:, :, 0], labels[:, :, nt]
+    for a, b in set(zip(first[first > 0].tolist(), last[first > 0].tolist(), strict=True)):
+        ra, rb = root(a), root(b)
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([root(i) for i in range(count + 1)])
+    _, compact = np.unique(roots, return_inverse=True)
+    return compact[labels[bx, by, bt]] - (1 if count > 0 else 0)
+
+
+@dataclass
+class ScanBeams:
+    """A scan reduced to the beams AMCL uses: ranges (m) and bearings (rad) in the laser frame, and range_max."""
+
+    ranges: np.ndarray
+    bearings: np.ndarray
+    range_max: float
+
+
+def select_beams(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,
+                 range_max: float, params: AmclParams) -> ScanBeams:
+    """Subsample a scan (Nav2's step) and keep finite returns inside (range_min, range_max).
+
+    ``laser_min_range``/``laser_max_range`` > 0 override the scan's limits (as in Nav2).
+    """
+    ranges = np.asarray(ranges, dtype=np.float64)
+    lo = params.laser_min_range if params.laser_min_range > 0 else range_min
+    hi = params.laser_max_range if params.laser_max_range > 0 else range_max
+    idx = beam_indices(ranges.size, params.max_beams)
+    r = ranges[idx]
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r > lo) & (r < hi)
+    idx = idx[ok]
+    return ScanBeams(ranges[idx], angle_min + idx * angle_increment, float(hi))
+
+
+class Amcl:
+    """The filter's driver: update gates, resample interval, initial pose, global localization, no-motion update.
+
+    ``process(odom_pose, beams, mount)`` takes the odometry pose (odom frame) at the scan's time. After a filter
+    update, ``estimate`` is the map pose and ``map_odom`` the correction with map pose = map_odom ∘ odom pose.
+    """
+
+    def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None) -> None:
+        self.params = params
+        self.pf = ParticleFilter(grid, params, rng)
+        self.pf_odom_pose: tuple[float, float, float] | None = None
+        self.force_update = False
+        self.resample_count = 0
+        self.updates = 0
+        self.estimate: Estimate | None = None
+        self.map_odom: tuple[float, float, float] | None = None
+
+    def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None) -> None:
+        """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2)."""
+        if covariance is None:
+            covariance = np.diag([0.25, 0.25, (math.pi / 12.0) ** 2])
+        if not all(math.isfinite(v) for v in pose):
+            raise ValueError(f"initial pose {pose} is not finite")
+        self.pf.init_gaussian(pose, covariance)
+        self._reinitialised()
+
+    def global_localization(self) -> None:
+        self.pf.init_uniform()
+        self._reinitialised()
+
+    def request_nomotion_update(self) -> None:
+        self.force_update = True
+
+    def reanchor_odometry(self) -> None:
+        """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
+        self.pf_odom_pose = None
+
+    def _reinitialised(self) -> None:
+        self.pf_odom_pose = None
+        self.resample_count = 0
+        self.estimate = None
+
+    def process(self, odom_pose: tuple[float, float, float], beams: ScanBeams,
+                mount: tuple[float, float, float]) -> bool:
+        """One scan: motion + sensor update (+ resampling) when the gates open; returns whether it updated."""
+        if self.pf_odom_pose is None:
+            self.pf_odom_pose = odom_pose
+            update = True
+        else:
+            px, py, pth = self.pf_odom_pose
+            delta = (odom_pose[0] - px, odom_pose[1] - py, float(wrap_angle(odom_pose[2] - pth)))
+            p = self.params
+            update = (abs(delta[0]) > p.update_min_d or abs(delta[1]) > p.update_min_d
+                      or abs(delta[2]) > p.update_min_a or self.force_update)
+            if update:
+                self.pf.motion_update(odom_pose, delta)
+                self.pf_odom_pose = odom_pose
+        if not update:
+            return False
+        self.force_update = False
+        self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
+        self.resample_count += 1
+        # the weighted set carries this scan's evidence; resampling only adds noise to its mean
+        self.estimate = self.pf.estimate()
+        if self.resample_count % self.params.resample_interval == 0:
+            self.pf.resample()
+        self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
+        self.updates += 1
+        return True

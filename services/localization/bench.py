@@ -1,0 +1,102 @@
+"""AMCL benchmarks: one sensor update plus resampling on a synthetic corridor map (no files needed)."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+from services.common.bench import BenchRow
+from services.localization.amcl import AmclParams, ParticleFilter, beam_indices
+from services.localization.map_io import OccupancyMap
+
+
+def cpu_time_calls(fn, *, repeat: int, warmup: int = 5, max_s: float = 10.0) -> np.ndarray:  # noqa: ANN001
+    """Thread CPU seconds of each call (robust to other processes sharing the cores; the work is single-threaded)."""
+    for _ in range(warmup):
+        fn()
+    out = []
+    start = time.perf_counter()
+    for _ in range(repeat):
+        t0 = time.thread_time()
+        fn()
+        out.append(time.thread_time() - t0)
+        if time.perf_counter() - start > max_s:
+            break
+    return np.asarray(out)
+
+
+def bench_map() -> OccupancyMap:
+    """A 40 m x 20 m map (0.05 m cells): outer walls, a corridor and a few boxes."""
+    res = 0.05
+    data = np.zeros((400, 800), dtype=np.int8)
+    data[:2, :] = data[-2:, :] = data[:, :2] = data[:, -2:] = 100
+    data[180:184, 100:700] = 100
+    for i in range(6):
+        data[60 + 40 * (i % 3): 80 + 40 * (i % 3), 120 + 100 * i: 140 + 100 * i] = 100
+    return OccupancyMap(data, res, (-5.0, -5.0, 0.0))
+
+
+def update_ms(particles: int, beams: int = 60, repeat: int = 200) -> float:
+    """Median CPU ms of sensor_update + resample with ``particles`` kept (min = max) and ``beams`` beams.
+
+    Recovery injection is off: its sensor-resetting draw is a separate, occasional cost (``amcl.recovery_ms``).
+    """
+    params = AmclParams(min_particles=particles, max_particles=particles, max_beams=beams, random_seed=1,
+                        recovery_alpha_slow=0.0, recovery_alpha_fast=0.0)
+    pf = ParticleFilter(bench_map(), params)
+    pf.init_gaussian((10.0, 3.0, 0.3), np.diag([0.5, 0.5, 0.3]))
+    idx = beam_indices(541, beams)
+    bearings = -math.radians(135) + idx * math.radians(0.5)
+    ranges = np.random.default_rng(2).uniform(0.5, 15.0, size=idx.size)
+
+    def one() -> None:
+        pf.sensor_update(ranges, bearings, (0.45, 0.0, 0.0), 20.0)
+        pf.resample()
+
+    return float(np.median(cpu_time_calls(one, repeat=repeat, warmup=10, max_s=5.0)) * 1e3)
+
+
+def recovery_ms() -> float:
+    """Median ms of drawing 10% recovery particles by sensor resetting (20000 candidates weighed by the scan)."""
+    params = AmclParams(random_seed=1)
+    pf = ParticleFilter(bench_map(), params)
+    idx = beam_indices(541, params.max_beams)
+    bearings = -math.radians(135) + idx * math.radians(0.5)
+    ranges = np.random.default_rng(2).uniform(0.5, 15.0, size=idx.size)
+    pf.sensor_update(ranges, bearings, (0.45, 0.0, 0.0), 20.0)
+    return float(np.median(cpu_time_calls(lambda: pf._recovery_poses(params.max_particles // 10), repeat=20,
+                                          warmup=2, max_s=5.0)) * 1e3)
+
+
+def corridor_rms() -> list[BenchRow]:
+    """Tracking error along the Table 3 route of the corridor world (synthetic laser and odometry, core level)."""
+    from services.localization.amcl import Amcl
+    from services.localization.synthetic import TABLE3_ROUTE, World, drive, find_world, route
+
+    path = find_world("corridor")
+    if path is None:
+        print("bench: amcl.rms_error_m skipped: corridor world file not found", file=sys.stderr)
+        return []
+    world = World.load(path)
+    amcl = Amcl(world.render(), AmclParams(random_seed=1))
+    amcl.set_initial_pose(TABLE3_ROUTE[0])
+    result = drive(amcl, world, list(route(TABLE3_ROUTE)), seed=1)
+    return [
+        BenchRow("amcl.rms_error_m", result.rms_xy_m, "m", "<= 0.03 (corridor, Table 3 route, synthetic laser)"),
+        BenchRow("amcl.rms_error_rad", result.rms_theta_rad, "rad", "<= 0.02"),
+    ]
+
+
+def run() -> list[BenchRow]:
+    return [
+        BenchRow("amcl.update_ms", update_ms(2000), "ms", "<= 3 (2000 particles x 61 beams, update + resample)"),
+        BenchRow("amcl.update_ms_5000", update_ms(5000, repeat=100), "ms", "5000 particles x 61 beams"),
+        BenchRow("amcl.recovery_ms", recovery_ms(), "ms", "only while injecting (w_fast < w_slow)"),
+        *corridor_rms(),
+    ]
+
+
+BENCHES = [("amcl", run)]

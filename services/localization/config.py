@@ -1,0 +1,73 @@
+"""The ``[localization]`` table: map, state folder, mode, initial pose and the AMCL parameters (Nav2 names)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from typing import Literal
+
+from services.localization.amcl import AmclParams
+
+#: module that provides ``async run(ctx)`` for the SLAM mapping mode
+MAPPING_MODULE = "services.localization.mapping"
+
+
+def mapping_available() -> bool:
+    return importlib.util.find_spec(MAPPING_MODULE) is not None
+
+
+class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
+    """Localization service settings; the AMCL parameters (``max_particles``, ``alpha1`` ...) are inherited.
+
+    - ``map_yaml``: ROS map_server YAML to localize in (and to serve on ``map``).
+    - ``state_dir``: folder for the last pose (``localization_pose.json``); empty: nothing is saved.
+    - ``mode``: ``navigation`` (AMCL on ``map_yaml``) or ``mapping`` (SLAM, when that module is present).
+    - initial pose: ``set_initial_pose`` with ``initial_pose_x/_y`` (m), ``initial_pose_yaw`` (rad) and the
+      ``initial_cov_xx/_yy`` (m^2), ``initial_cov_aa`` (rad^2) spread; ``initialize_at_saved_pose`` prefers the pose
+      saved by a previous run on the same map (written at ``save_pose_rate`` Hz).
+    - ``laser_mount_from_scan``: use the LaserScan's ``mount``; false: the ``[robot]`` laser_mount_* values.
+    - odom/scan synchronisation: the odom pose at a scan's stamp is interpolated from ``odom_history_s`` of odom;
+      a scan newer than the last odom waits for the next odom, or is extrapolated up to ``scan_odom_tolerance_s``.
+      Odometry that jumps by more than ``odom_jump_m`` between two messages (drive restarted) re-anchors AMCL.
+    """
+
+    map_yaml: str = ""
+    state_dir: str = ""
+    mode: Literal["navigation", "mapping"] = "navigation"
+    set_initial_pose: bool = True
+    initial_pose_x: float = 0.0
+    initial_pose_y: float = 0.0
+    initial_pose_yaw: float = 0.0
+    initial_cov_xx: float = 0.25
+    initial_cov_yy: float = 0.25
+    initial_cov_aa: float = (math.pi / 12.0) ** 2
+    initialize_at_saved_pose: bool = True
+    save_pose_rate: float = 0.5
+    laser_mount_from_scan: bool = True
+    particles_publish_hz: float = 2.0
+    odom_history_s: float = 2.0
+    scan_odom_tolerance_s: float = 0.1
+    odom_jump_m: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.validate()
+        if self.mode == "mapping" and not mapping_available():
+            raise ValueError("mode 'mapping' is not available in this build (no SLAM module); use 'navigation'")
+        for name in ("initial_pose_x", "initial_pose_y", "initial_pose_yaw"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} must be finite")
+        for name in ("initial_cov_xx", "initial_cov_yy", "initial_cov_aa"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0")
+        for name in ("save_pose_rate", "particles_publish_hz", "scan_odom_tolerance_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0")
+        if not self.odom_history_s > 0:
+            raise ValueError("odom_history_s must be > 0")
+        if not self.odom_jump_m > 0:
+            raise ValueError("odom_jump_m must be > 0")
+
+    def amcl_params(self) -> AmclParams:
+        """Only the AMCL parameters, as the filter core takes them."""
+        fields = {f: getattr(self, f) for f in AmclParams.__struct_fields__}
+        return AmclParams(**fields)

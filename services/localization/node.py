@@ -1,0 +1,369 @@
+"""The localization service: serves the map and runs AMCL on odometry and scans.
+
+Publishes ``map`` (latched: its queryable also answers the ``map`` query), ``pose`` (latched, after each filter update),
+``tf/map_odom`` (latched, every scan once localized; the map pose between updates is map_odom ∘ odom) and
+``particles`` (throttled). Serves ``localization/initial_pose``, ``localization/global`` and
+``localization/nomotion``. The odom pose at a scan's stamp is interpolated from a short odom history. The last
+pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial pose after a restart.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import collections
+import contextlib
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from proto import array
+from proto.messages import (
+    Empty,
+    InitialPoseRequest,
+    LaserScan,
+    Odometry,
+    Pose2D,
+    PoseArray,
+    PoseWithCovariance,
+    Reply,
+    Transform2D,
+)
+from services.common.service import ServiceContext
+from services.localization.amcl import Amcl, select_beams, wrap_angle
+from services.localization.config import MAPPING_MODULE, LocalizationConfig
+from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
+
+POSE_FILE = "localization_pose.json"
+Pose = tuple[float, float, float]
+
+
+class OdomHistory:
+    """Recent odometry poses by stamp; ``at(t)`` interpolates (x, y linearly, theta along the shorter arc)."""
+
+    def __init__(self, keep_s: float) -> None:
+        self.keep_s = keep_s
+        self.stamps: collections.deque[float] = collections.deque()
+        self.poses: collections.deque[Pose] = collections.deque()
+
+    def add(self, stamp: float, pose: Pose) -> None:
+        if self.stamps and stamp <= self.stamps[-1]:
+            if stamp < self.stamps[-1] - self.keep_s:  # the clock went back (sim restart): start over
+                self.stamps.clear()
+                self.poses.clear()
+            else:
+                return
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+        while self.stamps and self.stamps[0] < stamp - self.keep_s:
+            self.stamps.popleft()
+            self.poses.popleft()
+
+    @property
+    def latest_stamp(self) -> float | None:
+        return self.stamps[-1] if self.stamps else None
+
+    def at(self, t: float, tolerance_s: float) -> Pose | None:
+        """Odom pose at ``t``; None when ``t`` is outside the history by more than ``tolerance_s``."""
+        if not self.stamps:
+            return None
+        if t >= self.stamps[-1]:
+            return self.poses[-1] if t - self.stamps[-1] <= tolerance_s else None
+        if t <= self.stamps[0]:
+            return self.poses[0] if self.stamps[0] - t <= tolerance_s else None
+        i = bisect.bisect_right(self.stamps, t)
+        t0, t1 = self.stamps[i - 1], self.stamps[i]
+        p0, p1 = self.poses[i - 1], self.poses[i]
+        f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
+        return (p0[0] + f * (p1[0] - p0[0]), p0[1] + f * (p1[1] - p0[1]),
+                float(wrap_angle(p0[2] + f * float(wrap_angle(p1[2] - p0[2])))))
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+class LocalizationNode:
+    """Wires the map and the AMCL core to Zenoh (all callbacks run on the event loop)."""
+
+    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig) -> None:
+        self.ctx = ctx
+        self.cfg = cfg
+        self.node = ctx.node
+        self.log = ctx.node.log
+        self.grid: OccupancyMap | None = None
+        self.amcl: Amcl | None = None
+        self.map_problem = ""
+        self.odom = OdomHistory(cfg.odom_history_s)
+        self.pending_scan: LaserScan | None = None
+        self.last_particles_at = -math.inf
+        self.stats: collections.Counter[str] = collections.Counter()
+        self.initialised = False
+        self.pose_file = Path(cfg.state_dir) / POSE_FILE if cfg.state_dir else None
+        self.pub_map = self.node.publisher("map", latched=True)
+        self.pub_pose = self.node.publisher("pose", latched=True)  # latched like amcl_pose
+        self.pub_tf = self.node.publisher("tf/map_odom", latched=True)
+        self.pub_particles = self.node.publisher("particles")
+        self._load_map()
+        self._initialise()
+        self.node.subscribe("odom", self.on_odom)
+        self.node.subscribe("scan", self.on_scan)
+        self.node.queryable("localization/initial_pose", self.on_initial_pose)
+        self.node.queryable("localization/global", self.on_global)
+        self.node.queryable("localization/nomotion", self.on_nomotion)
+        self.node.extra_stats["localization"] = self.stats
+
+    # ------------------------------------------------------------------ map and start-up
+
+    def _load_map(self) -> None:
+        if not self.cfg.map_yaml:
+            self.map_problem = "no map: set localization.map_yaml"
+            self.log.error("%s; AMCL is idle", self.map_problem)
+            return
+        try:
+            self.grid = load_map(self.cfg.map_yaml)
+            self.amcl = Amcl(self.grid, self.cfg.amcl_params())
+        except (MapError, ValueError) as exc:
+            self.map_problem = str(exc)
+            self.log.error("cannot use the map: %s; AMCL is idle", exc)
+            return
+        self.pub_map.put(self.grid.to_msg(stamp=self.ctx.clock.now()))
+        counts = self.grid.counts()
+        self.log.info("map %s: %d x %d cells at %g m, %d free; serving it on `map`", self.cfg.map_yaml,
+                      self.grid.width, self.grid.height, self.grid.resolution, counts["free"])
+
+    def _initialise(self) -> None:
+        if self.amcl is None:
+            return
+        cfg = self.cfg
+        saved = self._read_saved_pose() if cfg.initialize_at_saved_pose else None
+        if saved is not None:
+            pose, cov = saved
+            self.amcl.set_initial_pose(pose, cov)
+            self.log.info("starting at the saved pose (%.3f, %.3f, %.3f)", *pose)
+        elif cfg.set_initial_pose:
+            pose = (cfg.initial_pose_x, cfg.initial_pose_y, cfg.initial_pose_yaw)
+            self.amcl.set_initial_pose(pose, np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa]))
+            self.log.info("starting at the configured initial pose (%.3f, %.3f, %.3f)", *pose)
+        else:
+            self.initialised = False
+            self.log.info("waiting for localization/initial_pose or localization/global")
+            return
+        self.initialised = True
+
+    def _read_saved_pose(self) -> tuple[Pose, np.ndarray] | None:
+        if self.pose_file is None or not self.pose_file.is_file():
+            return None
+        try:
+            data = json.loads(self.pose_file.read_text())
+            if data.get("map_yaml") != str(Path(self.cfg.map_yaml).resolve()):
+                self.log.info("saved pose in %s belongs to another map; not used", self.pose_file)
+                return None
+            pose = (float(data["x"]), float(data["y"]), float(data["theta"]))
+            cov = np.asarray(data["covariance"], dtype=float).reshape(3, 3)
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            self.log.warning("ignoring unreadable saved pose %s: %s", self.pose_file, exc)
+            return None
+        if not _finite(*pose) or not np.all(np.isfinite(cov)):
+            self.log.warning("ignoring non-finite saved pose in %s", self.pose_file)
+            return None
+        # a restart may follow a move by hand: never trust the saved spread below a few centimetres
+        cov = cov + np.diag([0.05 ** 2, 0.05 ** 2, 0.05 ** 2])
+        return pose, cov
+
+    def save_pose(self) -> None:
+        """Write the current estimate atomically to the state folder (no-op without one or before localizing)."""
+        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None:
+            return
+        est = self.amcl.estimate
+        data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
+                "theta": est.pose[2], "covariance": est.covariance.reshape(-1).tolist(),
+                "stamp": self.ctx.clock.now()}
+        try:
+            self.pose_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = self.pose_file.with_suffix(".tmp")
+            tmp.write_text(json.dumps(data))
+            os.replace(tmp, self.pose_file)
+        except OSError as exc:
+            self.stats["pose_save_errors"] += 1
+            self.log.warning("cannot save the pose to %s: %s", self.pose_file, exc)
+
+    # ------------------------------------------------------------------ sensors
+
+    def on_odom(self, msg: Odometry) -> None:
+        p = msg.pose
+        if not _finite(msg.stamp, p.x, p.y, p.theta):
+            self.stats["bad_odom"] += 1
+            return
+        last = self.odom.poses[-1] if self.odom.poses else None
+        if last is not None and math.hypot(p.x - last[0], p.y - last[1]) > self.cfg.odom_jump_m:
+            # drive restarted (odometry back at zero) or was reset: keep the particles, re-anchor on the new odom
+            self.stats["odom_jumps"] += 1
+            self.log.warning("odometry jumped from (%.2f, %.2f) to (%.2f, %.2f); re-anchoring AMCL on it",
+                             last[0], last[1], p.x, p.y)
+            self.odom = OdomHistory(self.cfg.odom_history_s)
+            self.pending_scan = None
+            if self.amcl is not None:
+                self.amcl.reanchor_odometry()
+        self.odom.add(msg.stamp, (p.x, p.y, p.theta))
+        if self.pending_scan is not None and msg.stamp >= self.pending_scan.stamp:
+            scan, self.pending_scan = self.pending_scan, None
+            self._process(scan)
+
+    def on_scan(self, msg: LaserScan) -> None:
+        self.stats["scans"] += 1
+        if self.amcl is None or not self.initialised:
+            return
+        if self.pending_scan is not None:  # the odom never passed it: extrapolate within tolerance, or drop
+            scan, self.pending_scan = self.pending_scan, None
+            self._process(scan)
+        latest = self.odom.latest_stamp
+        if latest is None:
+            self.stats["scans_without_odom"] += 1
+            return
+        if msg.stamp > latest:
+            self.pending_scan = msg
+            return
+        self._process(msg)
+
+    def _process(self, scan: LaserScan) -> None:
+        assert self.amcl is not None
+        odom_pose = self.odom.at(scan.stamp, self.cfg.scan_odom_tolerance_s)
+        if odom_pose is None:
+            self.stats["scans_out_of_odom_history"] += 1
+            return
+        try:
+            ranges = array(scan, "ranges")
+        except Exception as exc:  # a malformed byte field: count it, keep going
+            self.stats["bad_scans"] += 1
+            self.log.warning("dropping a malformed scan: %s", exc)
+            return
+        if not _finite(scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max) or ranges.size < 2:
+            self.stats["bad_scans"] += 1
+            return
+        beams = select_beams(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
+                             self.amcl.params)
+        if beams.ranges.size < 3:
+            self.stats["scans_without_returns"] += 1
+            return
+        if self.cfg.laser_mount_from_scan:
+            mount = (scan.mount.x, scan.mount.y, scan.mount.theta)
+            if not _finite(*mount):
+                self.stats["bad_scans"] += 1
+                return
+        else:
+            r = self.ctx.robot
+            mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
+        updated = self.amcl.process(odom_pose, beams, mount)
+        if updated:
+            self.stats["filter_updates"] += 1
+            self._publish_pose(scan.stamp)
+        self._publish_tf(scan.stamp)
+        self._publish_particles()
+
+    # ------------------------------------------------------------------ outputs
+
+    def _publish_pose(self, stamp: float) -> None:
+        assert self.amcl is not None and self.amcl.estimate is not None
+        est = self.amcl.estimate
+        x, y, th = est.pose
+        self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
+                                             covariance=est.covariance.reshape(-1).tolist()))
+
+    def _publish_tf(self, stamp: float) -> None:
+        assert self.amcl is not None
+        if self.amcl.map_odom is None:
+            return
+        x, y, th = self.amcl.map_odom
+        self.pub_tf.put(Transform2D(stamp=stamp, parent="map", child="odom", x=x, y=y, theta=th))
+
+    def _publish_particles(self) -> None:
+        assert self.amcl is not None
+        hz = self.cfg.particles_publish_hz
+        now = self.ctx.clock.now()
+        if hz <= 0 or now - self.last_particles_at < 1.0 / hz:
+            return
+        self.last_particles_at = now
+        pf = self.amcl.pf
+        self.pub_particles.put(PoseArray(stamp=now, frame="map", poses=pf.poses[:pf.n].astype("<f4").tobytes(),
+                                         weights=pf.weights[:pf.n].astype("<f4").tobytes()))
+
+    # ------------------------------------------------------------------ queries
+
+    def _no_map(self) -> Reply | None:
+        if self.amcl is None:
+            return Reply(ok=False, message=f"localization has no map ({self.map_problem})")
+        return None
+
+    def on_initial_pose(self, req: InitialPoseRequest) -> Reply:
+        if (problem := self._no_map()) is not None:
+            return problem
+        assert self.amcl is not None and self.grid is not None
+        p = req.pose
+        if not _finite(p.x, p.y, p.theta):
+            return Reply(ok=False, message=f"initial pose ({p.x}, {p.y}, {p.theta}) is not finite")
+        if req.covariance:
+            if len(req.covariance) != 9 or not _finite(*req.covariance):
+                return Reply(ok=False, message="covariance must be 9 finite numbers (3x3 over x, y, theta)")
+            cov = np.asarray(req.covariance, dtype=float).reshape(3, 3)
+        else:
+            cfg = self.cfg
+            cov = np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa])
+        col, row = self.grid.world_to_cell(np.array([p.x]), np.array([p.y]))
+        c, r = int(col[0]), int(row[0])
+        if not (0 <= c < self.grid.width and 0 <= r < self.grid.height):
+            return Reply(ok=False, message=f"initial pose ({p.x:.3f}, {p.y:.3f}) lies outside the map")
+        try:
+            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov)
+        except ValueError as exc:
+            return Reply(ok=False, message=str(exc))
+        self.initialised = True
+        note = "" if self.grid.data[r, c] == FREE else " (note: that cell is not free in the map)"
+        self.log.info("initial pose set to (%.3f, %.3f, %.3f)%s", p.x, p.y, p.theta, note)
+        return Reply(ok=True, message=f"initial pose set to ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
+
+    def on_global(self, _req: Empty) -> Reply:
+        if (problem := self._no_map()) is not None:
+            return problem
+        assert self.amcl is not None
+        self.amcl.global_localization()
+        self.initialised = True
+        self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
+        return Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
+
+    def on_nomotion(self, _req: Empty) -> Reply:
+        if (problem := self._no_map()) is not None:
+            return problem
+        assert self.amcl is not None
+        if not self.initialised:
+            return Reply(ok=False, message="not localized yet: set an initial pose or start global localization")
+        self.amcl.request_nomotion_update()
+        return Reply(ok=True, message="the next scan updates the filter without motion")
+
+
+async def run(ctx: ServiceContext) -> None:
+    cfg: LocalizationConfig = ctx.config["localization"]
+    if cfg.mode == "mapping":
+        import importlib
+
+        await importlib.import_module(MAPPING_MODULE).run(ctx)
+        return
+    loc = LocalizationNode(ctx, cfg)
+    period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else None
+    if period is None:
+        await ctx.stop.wait()
+    else:
+        while not ctx.stop.is_set():
+            stop = asyncio.ensure_future(ctx.stop.wait())
+            sleeper = asyncio.ensure_future(ctx.clock.sleep(period))
+            await asyncio.wait({stop, sleeper}, return_when=asyncio.FIRST_COMPLETED)
+            for task in (stop, sleeper):
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            loc.save_pose()
+    loc.save_pose()
+

@@ -1,0 +1,161 @@
+"""Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs and ROS 1 ``.bag`` files.
+
+CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
+(beams spread evenly over 180°, starting at -90°) and ``ROBOTLASER1 type start_angle fov resolution max_range
+accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
+tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp``; the stamp is the IPC
+timestamp. Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or
+``/tf`` odom→base), interpolated at each scan stamp, and the laser mount from ``/tf_static``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .se2 import interpolate, wrap_angle
+
+CARMEN_MAX_RANGE_M = 80.0
+
+
+@dataclass
+class LaserScanRecord:
+    """One scan: ``ranges_m`` at ``angles_rad`` (laser frame), odometry pose of the robot (x, y, theta)."""
+
+    stamp_s: float
+    ranges_m: np.ndarray
+    angles_rad: np.ndarray
+    odom_pose: np.ndarray
+    min_range_m: float = 0.0
+    max_range_m: float = CARMEN_MAX_RANGE_M
+
+
+@dataclass
+class LaserLog:
+    """Scans in time order and the laser's pose (x, y, theta) in the robot frame."""
+
+    scans: list[LaserScanRecord]
+    sensor_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    @property
+    def duration_s(self) -> float:
+        return self.scans[-1].stamp_s - self.scans[0].stamp_s if self.scans else 0.0
+
+
+def parse_carmen(lines: Iterable[str]) -> LaserLog:
+    """Scans of the FLASER / ROBOTLASER1 lines of a CARMEN log (other lines are ignored)."""
+    scans: list[LaserScanRecord] = []
+    for number, line in enumerate(lines, start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        try:
+            if fields[0] == "FLASER":
+                n = int(fields[1])
+                ranges = np.array(fields[2:2 + n], float)
+                rest = fields[2 + n:]
+                odom = np.array(rest[3:6], float)
+                stamp = float(rest[6])
+                angles = -np.pi / 2 + np.arange(n) * (np.pi / max(n - 1, 1))
+                scans.append(LaserScanRecord(stamp, ranges, angles, odom))
+            elif fields[0] == "ROBOTLASER1":
+                start, fov, max_range = float(fields[2]), float(fields[3]), float(fields[5])
+                n = int(fields[8])
+                ranges = np.array(fields[9:9 + n], float)
+                n_rem = int(fields[9 + n])
+                rest = fields[10 + n + n_rem:]
+                odom = np.array(rest[3:6], float)
+                stamp = float(rest[11])
+                angles = start + np.arange(n) * (fov / max(n - 1, 1))
+                scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+        except (ValueError, IndexError) as exc:
+            raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
+    scans.sort(key=lambda s: s.stamp_s)
+    return LaserLog(scans)
+
+
+def _yaw(q) -> float:
+    return float(np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z)))
+
+
+def _stamp(header) -> float:
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None = None) -> LaserLog:
+    """Scans and odometry of a ROS 1 (or ROS 2) bag, read with ``rosbags`` (no ROS installation needed)."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(path)]) as reader:
+        scan_conns = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/LaserScan"
+                      and (scan_topic is None or c.topic == scan_topic)]
+        if not scan_conns:
+            raise ValueError(f"{path}: no sensor_msgs/LaserScan topic{f' {scan_topic}' if scan_topic else ''}")
+        scan_conns = scan_conns[:1]
+        odom_conns = [c for c in reader.connections if c.msgtype == "nav_msgs/msg/Odometry"
+                      and (odom_topic is None or c.topic == odom_topic)][:1]
+        tf_conns = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
+        raw_scans = []
+        odom_stamps: list[float] = []
+        odom_poses: list[tuple[float, float, float]] = []
+        tf_odom: list[tuple[float, float, float, float]] = []
+        static: dict[str, tuple[str, np.ndarray]] = {}
+        for conn, _, raw in reader.messages(connections=scan_conns + odom_conns + tf_conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn in scan_conns:
+                raw_scans.append(msg)
+            elif conn in odom_conns:
+                p = msg.pose.pose
+                odom_stamps.append(_stamp(msg.header))
+                odom_poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
+            else:
+                for tf in msg.transforms:
+                    t = tf.transform.translation
+                    pose = np.array([t.x, t.y, _yaw(tf.transform.rotation)])
+                    if conn.topic == "/tf_static":
+                        static[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), pose)
+                    elif not odom_conns and tf.header.frame_id.lstrip("/") == "odom":
+                        tf_odom.append((_stamp(tf.header), *pose))
+    if not odom_stamps:
+        if not tf_odom:
+            raise ValueError(f"{path}: no nav_msgs/Odometry topic and no odom transform in /tf")
+        tf_odom.sort()
+        odom_stamps = [row[0] for row in tf_odom]
+        odom_poses = [row[1:] for row in tf_odom]
+    o_stamps = np.asarray(odom_stamps)
+    order = np.argsort(o_stamps, kind="stable")
+    o_stamps = o_stamps[order]
+    o_poses = np.asarray(odom_poses, float)[order]
+    laser_frame = raw_scans[0].header.frame_id.lstrip("/") if raw_scans else ""
+    sensor_pose = static[laser_frame][1] if laser_frame in static else np.zeros(3)
+    scans = []
+    for msg in raw_scans:
+        stamp = _stamp(msg.header)
+        ranges = np.asarray(msg.ranges, float)
+        angles = msg.angle_min + np.arange(len(ranges)) * msg.angle_increment
+        odom = interpolate(o_stamps, o_poses, stamp)[0]
+        scans.append(LaserScanRecord(stamp, ranges, angles, odom, float(msg.range_min), float(msg.range_max)))
+    scans.sort(key=lambda s: s.stamp_s)
+    sensor_pose[2] = float(wrap_angle(sensor_pose[2]))
+    return LaserLog(scans, sensor_pose)
+
+
+def read_log(path: str | Path) -> LaserLog:
+    """A ``.clf`` (CARMEN, optionally ``.gz``) or ``.bag`` log."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"log not found: {path}")
+    if path.suffix == ".bag":
+        return read_bag(path)
+    if path.name.endswith((".clf", ".log", ".clf.gz", ".log.gz")):
+        if path.suffix == ".gz":
+            import gzip
+
+            with gzip.open(path, "rt") as f:
+                return parse_carmen(f)
+        with path.open() as f:
+            return parse_carmen(f)
+    raise ValueError(f"unsupported log format {path.name!r}: expected a CARMEN .clf/.log or a ROS .bag")

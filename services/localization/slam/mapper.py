@@ -1,0 +1,318 @@
+"""Graph SLAM front- and back-end: feed scans with odometry, get the optimised trajectory and map.
+
+Every scan is matched against a local submap built from the last keyframes (``matcher.refine`` on a
+multi-resolution likelihood grid, with the odometry prediction as a prior; a correlative search rescues
+poor matches and fast turns). A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous
+keyframe by the matched relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back
+along the path); it is matched against that keyframe's neighbourhood (refinement from the current estimate,
+then a wide correlative search if that fails) and the match is accepted as a loop constraint only when its
+score is high and the scan fixes both translation directions. The graph is re-optimised after loop closures.
+Non-keyframe scans are stored relative to their keyframe so the whole trajectory follows the optimisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+
+from .likelihood import MultiResolutionGrid
+from .matcher import MatchResult, correlative_search, refine, translation_sharpness
+from .occupancy import OccupancyGrid
+from .pose_graph import PoseGraph
+from .se2 import between, compose, transform_points, wrap_angle
+
+
+class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
+    """Tuning of ``GraphSlam`` (defaults suit a 180° / 0.5° lidar indoors)."""
+
+    resolution_m: float = 0.05
+    levels: int = 3
+    match_max_range_m: float = 20.0
+    map_max_range_m: float = 25.0
+    point_spacing_m: float = 0.05
+    keyframe_distance_m: float = 0.5
+    keyframe_angle_rad: float = 0.2
+    submap_keyframes: int = 20
+    min_match_score: float = 0.35
+    odom_prior_sigma_xy_m: float = 0.02
+    odom_prior_sigma_theta_rad: float = 0.05
+    rescue_window_xy_m: float = 0.4
+    rescue_window_theta_rad: float = 0.25
+    fast_turn_rad: float = 0.15
+    sequential_sigma_xy_m: float = 0.02
+    sequential_sigma_theta_rad: float = 0.005
+    loop_sigma_xy_m: float = 0.03
+    loop_sigma_theta_rad: float = 0.01
+    loop_robust_scale: float = 10.0
+    loop_search_radius_m: float = 4.0
+    loop_min_travel_m: float = 8.0
+    loop_neighbour_keyframes: int = 12
+    loop_min_score: float = 0.55
+    loop_min_sharpness: float = 10.0
+    loop_window_xy_m: float = 2.0
+    loop_window_theta_rad: float = 0.4
+    loop_theta_step_rad: float = 0.015
+    loop_search_every_keyframes: int = 3
+    optimize_every_loops: int = 5
+    loop_grid_cache_size: int = 64
+
+
+@dataclass
+class _ScanRecord:
+    stamp_s: float
+    keyframe: int
+    relative_pose: np.ndarray
+
+
+@dataclass
+class _Keyframe:
+    points: np.ndarray
+    map_points: np.ndarray
+    sensor_origin_xy_m: np.ndarray
+    travel_m: float
+
+
+def decimate(points: np.ndarray, spacing_m: float) -> np.ndarray:
+    """One point per ``spacing_m`` square cell (the first in scan order), order kept."""
+    if len(points) == 0:
+        return points
+    keys = np.floor(points / spacing_m).astype(np.int64)
+    flat = keys[:, 0] * 2_000_003 + keys[:, 1]
+    _, first = np.unique(flat, return_index=True)
+    return points[np.sort(first)]
+
+
+def scan_to_points(ranges_m: np.ndarray, angles_rad: np.ndarray, sensor_pose: np.ndarray, *,
+                   min_range_m: float, max_range_m: float) -> np.ndarray:
+    """Hit points (N, 2) in the robot frame from a planar scan mounted at ``sensor_pose`` (x, y, theta);
+    readings outside (min_range_m, max_range_m) or not finite are dropped."""
+    ranges_m = np.asarray(ranges_m, float)
+    ok = np.isfinite(ranges_m) & (ranges_m > min_range_m) & (ranges_m < max_range_m)
+    r = ranges_m[ok]
+    a = np.asarray(angles_rad, float)[ok]
+    local = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    return transform_points(np.asarray(sensor_pose, float), local)
+
+
+class GraphSlam:
+    """Offline/online graph SLAM over scans given as robot-frame hit points plus an odometry pose."""
+
+    def __init__(self, config: SlamConfig | None = None) -> None:
+        self.config = config or SlamConfig()
+        self.graph = PoseGraph()
+        self._keyframes: list[_Keyframe] = []
+        self._scans: list[_ScanRecord] = []
+        self._last_odom: np.ndarray | None = None
+        self._submap: MultiResolutionGrid | None = None
+        self._loop_grids: dict[int, MultiResolutionGrid] = {}
+        self._loops_since_optimize = 0
+        self._last_loop_keyframe = -(10**9)
+        self._last_loop_search = -(10**9)
+        self.loop_closures: list[tuple[int, int, float]] = []
+        self.loop_checks = 0
+        self.rescued_matches = 0
+        self.weak_matches = 0
+        c = self.config
+        self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
+                                    1 / c.odom_prior_sigma_theta_rad**2])
+        self._sequential_info = np.diag([1 / c.sequential_sigma_xy_m**2, 1 / c.sequential_sigma_xy_m**2,
+                                         1 / c.sequential_sigma_theta_rad**2])
+        self._loop_info = np.diag([1 / c.loop_sigma_xy_m**2, 1 / c.loop_sigma_xy_m**2,
+                                   1 / c.loop_sigma_theta_rad**2])
+
+    # ----------------------------------------------------------------------------------------------- state
+    @property
+    def n_scans(self) -> int:
+        return len(self._scans)
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    def _scan_pose(self, record: _ScanRecord) -> np.ndarray:
+        return compose(self.graph.pose(record.keyframe), record.relative_pose)
+
+    def current_pose(self) -> np.ndarray:
+        """Latest scan's pose in the map frame."""
+        if not self._scans:
+            raise RuntimeError("no scan processed yet")
+        return self._scan_pose(self._scans[-1])
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_s (N,), poses (N, 3)) of every scan, from the current graph."""
+        stamps = np.array([s.stamp_s for s in self._scans])
+        kf = self.graph.poses()
+        anchors = np.array([s.keyframe for s in self._scans], dtype=np.intp)
+        rel = np.array([s.relative_pose for s in self._scans]).reshape(-1, 3)
+        return stamps, compose(kf[anchors], rel)
+
+    # ------------------------------------------------------------------------------------------- matching
+    def _rebuild_submap(self, around: np.ndarray) -> None:
+        c = self.config
+        poses = self.graph.poses()
+        first = max(0, self.n_keyframes - c.submap_keyframes)
+        clouds = [transform_points(poses[k], self._keyframes[k].points) for k in range(first, self.n_keyframes)]
+        cloud = np.concatenate(clouds)
+        near = np.hypot(cloud[:, 0] - around[0], cloud[:, 1] - around[1]) < c.match_max_range_m + 2.0
+        cloud = cloud[near] if near.sum() > 10 else cloud
+        self._submap = MultiResolutionGrid.from_points(cloud, c.resolution_m, c.levels)
+
+    def _match_local(self, points: np.ndarray, predicted: np.ndarray, turn_rad: float) -> np.ndarray:
+        c = self.config
+        if self._submap is None:
+            self._rebuild_submap(predicted)
+        assert self._submap is not None
+        result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
+        if result.score >= c.min_match_score and abs(turn_rad) < c.fast_turn_rad:
+            return result.pose
+        # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search rotations widely
+        window = c.rescue_window_theta_rad + 0.5 * abs(turn_rad)
+        candidates = correlative_search(self._submap.levels[-1], points, predicted,
+                                        window_xy_m=c.rescue_window_xy_m, window_theta_rad=window,
+                                        theta_step_rad=0.02, n_best=3)
+        best = result
+        for _, pose in candidates:
+            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._odom_prior)
+            if trial.score > best.score + 0.02:
+                best = trial
+        if best.score >= c.min_match_score:
+            if best is not result:
+                self.rescued_matches += 1
+            return best.pose
+        self.weak_matches += 1
+        return predicted if best.score < 0.5 * c.min_match_score else best.pose
+
+    # ---------------------------------------------------------------------------------------------- input
+    def add_scan(self, stamp_s: float, odom_pose: np.ndarray, points: np.ndarray,
+                 sensor_origin_xy_m: np.ndarray | None = None) -> np.ndarray:
+        """Process one scan: ``points`` (N, 2) are hits in the robot frame, ``odom_pose`` the robot's odometry
+        pose at the scan's time. Returns the estimated robot pose in the map frame."""
+        c = self.config
+        odom_pose = np.asarray(odom_pose, float)
+        origin = np.zeros(2) if sensor_origin_xy_m is None else np.asarray(sensor_origin_xy_m, float)
+        ranges = np.hypot(points[:, 0] - origin[0], points[:, 1] - origin[1])
+        match_points = decimate(points[ranges < c.match_max_range_m], c.point_spacing_m)
+        map_points = points[ranges < c.map_max_range_m]
+        if not self._keyframes:
+            pose = odom_pose.copy()
+            self._add_keyframe(stamp_s, pose, match_points, map_points, origin, travel_m=0.0)
+            self._last_odom = odom_pose
+            return pose
+        assert self._last_odom is not None
+        previous = self.current_pose()
+        predicted = compose(previous, between(self._last_odom, odom_pose))
+        self._last_odom = odom_pose
+        turn = float(wrap_angle(predicted[2] - previous[2]))
+        pose = self._match_local(match_points, predicted, turn) if len(match_points) >= 20 else predicted
+        last_kf = self.n_keyframes - 1
+        from_kf = between(self.graph.pose(last_kf), pose)
+        moved = np.hypot(from_kf[0], from_kf[1])
+        if moved >= c.keyframe_distance_m or abs(from_kf[2]) >= c.keyframe_angle_rad:
+            travel = self._keyframes[-1].travel_m + moved
+            k = self._add_keyframe(stamp_s, pose, match_points, map_points, origin, travel_m=travel)
+            self.graph.add_edge(last_kf, k, from_kf, self._sequential_info)
+            self._submap = None
+            self._search_loop(k)
+        else:
+            self._scans.append(_ScanRecord(stamp_s, last_kf, from_kf))
+        return self.current_pose()
+
+    def _add_keyframe(self, stamp_s: float, pose: np.ndarray, points: np.ndarray, map_points: np.ndarray,
+                      origin: np.ndarray, travel_m: float) -> int:
+        k = self.graph.add_node(pose)
+        self._keyframes.append(_Keyframe(points, map_points, origin, travel_m))
+        self._scans.append(_ScanRecord(stamp_s, k, np.zeros(3)))
+        return k
+
+    # ----------------------------------------------------------------------------------------- loop closure
+    def _loop_grid(self, center: int, newest_allowed: int) -> MultiResolutionGrid:
+        grid = self._loop_grids.get(center)
+        if grid is not None:
+            return grid
+        c = self.config
+        poses = self.graph.poses()
+        lo = max(0, center - c.loop_neighbour_keyframes)
+        hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
+        clouds = [transform_points(between(poses[center], poses[m]), self._keyframes[m].points)
+                  for m in range(lo, hi + 1)]
+        grid = MultiResolutionGrid.from_points(np.concatenate(clouds), c.resolution_m, c.levels)
+        if len(self._loop_grids) >= c.loop_grid_cache_size:
+            self._loop_grids.pop(next(iter(self._loop_grids)))
+        self._loop_grids[center] = grid
+        return grid
+
+    def _search_loop(self, k: int) -> None:
+        c = self.config
+        poses = self.graph.poses()
+        travel = np.array([kf.travel_m for kf in self._keyframes])
+        old = travel < travel[k] - c.loop_min_travel_m
+        if not old.any():
+            return
+        dist = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
+        dist[~old] = np.inf
+        candidate = int(np.argmin(dist))
+        if not np.isfinite(dist[candidate]) or dist[candidate] > c.loop_search_radius_m:
+            return
+        newest_allowed = int(np.nonzero(old)[0].max())
+        grid = self._loop_grid(candidate, newest_allowed)
+        points = self._keyframes[k].points
+        guess = between(poses[candidate], poses[k])
+        result = refine(grid, points, guess)
+        accepted = self._loop_ok(grid, points, result, guess)
+        recently_closed = k - self._last_loop_keyframe <= 2 * c.loop_search_every_keyframes
+        if not accepted and not recently_closed and k - self._last_loop_search >= c.loop_search_every_keyframes:
+            self._last_loop_search = k
+            best: MatchResult | None = None
+            for _, pose in correlative_search(grid.levels[-1], points, guess, window_xy_m=c.loop_window_xy_m,
+                                              window_theta_rad=c.loop_window_theta_rad,
+                                              theta_step_rad=c.loop_theta_step_rad, n_best=4):
+                trial = refine(grid, points, pose)
+                if best is None or trial.score > best.score:
+                    best = trial
+            if best is not None and self._loop_ok(grid, points, best, guess):
+                result, accepted = best, True
+        if not accepted:
+            return
+        correction = np.hypot(*(result.pose[:2] - guess[:2])) + abs(wrap_angle(result.pose[2] - guess[2]))
+        self.graph.add_edge(candidate, k, result.pose, self._loop_info, robust_scale=c.loop_robust_scale)
+        self.loop_closures.append((candidate, k, float(correction)))
+        self._last_loop_keyframe = k
+        self._loops_since_optimize += 1
+        if correction > 0.1 or self._loops_since_optimize >= c.optimize_every_loops:
+            self.optimize()
+
+    def _loop_ok(self, grid: MultiResolutionGrid, points: np.ndarray, result: MatchResult, guess: np.ndarray) -> bool:
+        c = self.config
+        offset = np.hypot(*(result.pose[:2] - guess[:2]))
+        if result.score < c.loop_min_score or offset > c.loop_window_xy_m + 0.5 or \
+                abs(wrap_angle(result.pose[2] - guess[2])) > c.loop_window_theta_rad + 0.1:
+            return False
+        sharpness = translation_sharpness(grid.levels[0], points, result.pose)
+        self.loop_checks += 1
+        return sharpness >= c.loop_min_sharpness
+
+    def optimize(self, iterations: int = 20) -> None:
+        """Re-optimise the pose graph; the local submap is rebuilt from the new poses. Loop grids are kept: they
+        hold a keyframe's neighbourhood in that keyframe's frame, which optimisation barely changes."""
+        self.graph.optimize(iterations)
+        self._loops_since_optimize = 0
+        self._submap = None
+
+    def finish(self) -> None:
+        """Final optimisation after the last scan."""
+        self.optimize(30)
+
+    # -------------------------------------------------------------------------------------------------- map
+    def render_map(self, resolution_m: float | None = None) -> OccupancyGrid:
+        """Log-odds grid from every keyframe at its optimised pose."""
+        res = resolution_m or self.config.resolution_m
+        poses = self.graph.poses()
+        world = [transform_points(poses[k], kf.map_points) for k, kf in enumerate(self._keyframes)
+                 if len(kf.map_points)]
+        cloud = np.concatenate(world + [poses[:, :2]])
+        grid = OccupancyGrid.covering(cloud.min(axis=0), cloud.max(axis=0), res)
+        for k, kf in enumerate(self._keyframes):
+            grid.insert_scan(poses[k], kf.sensor_origin_xy_m, kf.map_points)
+        return grid

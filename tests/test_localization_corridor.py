@@ -1,0 +1,59 @@
+"""AMCL in the corridor world with a synthetic laser (exact ray casting, 12 mm noise) and noisy odometry.
+
+Acceptance figures at core level: tracking along the Table 3 route, global localization, kidnapping.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.localization.amcl import Amcl, AmclParams
+from services.localization.synthetic import TABLE3_ROUTE, Odometry, World, drive, route
+
+
+@pytest.fixture
+def world(shared_dir) -> World:
+    return World.load(shared_dir / "worlds" / "corridor.toml")
+
+
+@pytest.fixture
+def grid(world):
+    return world.render()
+
+
+def test_tracking_along_the_table3_route(world, grid):
+    amcl = Amcl(grid, AmclParams(random_seed=1))
+    amcl.set_initial_pose(TABLE3_ROUTE[0])  # Nav2's default spread: 0.5 m, 0.5 m, pi/12
+    result = drive(amcl, world, list(route(TABLE3_ROUTE)), seed=1)
+    print(f"\nTable 3 route, {result.distance_m[-1]:.1f} m, {result.updates} filter updates: "
+          f"RMS error {result.rms_xy_m:.4f} m, {result.rms_theta_rad:.4f} rad "
+          f"(max {result.errors_xy_m.max():.3f} m, {result.errors_theta_rad.max():.3f} rad)")
+    assert result.distance_m[-1] > 70.0
+    assert result.rms_xy_m <= 0.03
+    assert result.rms_theta_rad <= 0.02
+
+
+def test_global_localization_converges_within_5m(world, grid):
+    amcl = Amcl(grid, AmclParams(random_seed=2))
+    amcl.global_localization()
+    result = drive(amcl, world, list(route([(2.0, 3.0, 0.0), (12.0, 3.3, 0.3)])), seed=2)
+    settled = result.settled_after_m(0.2)
+    print(f"\nglobal localization: error < 0.2 m from {settled} m of travel on; final {result.errors_xy_m[-1]:.3f} m")
+    assert settled is not None and settled <= 5.0
+
+
+def test_kidnapped_robot_recovers_within_10m(world, grid):
+    amcl = Amcl(grid, AmclParams(random_seed=3))
+    before = list(route([(2.0, 3.0, 0.0), (8.0, 3.2, 0.0)]))
+    after = list(route([(13.0, 3.2, 0.0), (24.0, 3.3, 0.8), (25.0, 7.0, 1.5), (23.5, 12.0, 1.57)]))
+    amcl.set_initial_pose(before[0], np.diag([0.01, 0.01, 0.01]))
+    odometry = Odometry(before[0], rng=np.random.default_rng(33))
+    tracked = drive(amcl, world, before, seed=3, odometry=odometry)
+    assert tracked.errors_xy_m[-1] < 0.1
+    odometry.teleported(after[0])  # 5 m along the corridor; odometry does not see it
+    result = drive(amcl, world, after, seed=4, odometry=odometry)
+    recovered = result.settled_after_m(0.2)
+    assert result.errors_xy_m[0] > 4.0
+    print(f"\nkidnapped 5 m: error < 0.2 m from {recovered} m of travel on; final {result.errors_xy_m[-1]:.3f} m")
+    assert recovered is not None and recovered <= 10.0

@@ -1,0 +1,153 @@
+"""The simulator's world: loading, ray casting against a brute-force march, obstacles, map rendering."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from services.sim.world import World, WorldError, builtin_worlds, load_world
+
+
+@pytest.fixture(scope="module")
+def corridor() -> World:
+    return World.load_builtin("corridor")
+
+
+def brute_range(world: World, x: float, y: float, angle: float, max_range: float, step: float = 0.0005) -> float:
+    """Sample the beam every 0.5 mm and return the first sample in a solid cell (the reference to match)."""
+    t = np.arange(0.0, max_range, step)
+    rows = np.floor((y + t * math.sin(angle) - world.origin_xy[1]) / world.resolution_m).astype(int)
+    cols = np.floor((x + t * math.cos(angle) - world.origin_xy[0]) / world.resolution_m).astype(int)
+    inside = (rows >= 0) & (rows < world.shape[0]) & (cols >= 0) & (cols < world.shape[1])
+    solid = ~inside
+    solid[inside] = world.solid[rows[inside], cols[inside]]
+    hits = np.flatnonzero(solid)
+    return float(t[hits[0]]) if hits.size else max_range
+
+
+def test_builtin_worlds_load_with_goals_and_free_start() -> None:
+    assert {"corridor", "empty_room", "loop"} <= set(builtin_worlds())
+    for name in builtin_worlds():
+        w = World.load_builtin(name)
+        x, y, _ = w.start_pose
+        assert not w.circle_collides(x, y, 0.63), f"{name}: start pose collides"
+        for g in w.goals:
+            assert not w.circle_collides(g.pose[0], g.pose[1], 0.63), f"{name}: goal {g.id} collides"
+    with pytest.raises(WorldError, match="no built-in world 'nope'"):
+        World.load_builtin("nope")
+
+
+def test_corridor_geometry(corridor: World) -> None:
+    assert corridor.extent == pytest.approx((-2.5, -2.0, 29.5, 15.5))
+    assert corridor.shape == (350, 640)
+    assert not corridor.is_solid(0.0, 0.0)
+    assert corridor.is_solid(-1.5, -0.9)  # the cabinet
+    assert corridor.is_solid(10.0, 6.0)  # wall north of the corridor
+    assert not corridor.is_solid(7.5, 5.1)  # a door recess
+    assert corridor.is_solid(40.0, 0.0)  # outside the extent
+    assert [g.id for g in corridor.goals] == ["1", "2", "3", "4", "5", "6", "7"]
+    assert corridor.goals[5].pose == pytest.approx((23.1, 13.4, -1.57))
+    assert "box" in corridor.dynamic and not corridor.dynamic["box"].active
+
+
+def test_axis_aligned_ranges_are_exact(corridor: World) -> None:
+    r = corridor.raycast(3.0, 3.5, np.array([math.pi / 2, -math.pi / 2, math.pi, 0.0]), 20.0)
+    assert r[0] == pytest.approx(1.4, abs=1e-5)  # north wall at y = 4.9
+    assert r[1] == pytest.approx(4.9, abs=1e-5)  # south: across the lobby to its wall at y = -1.4
+    assert r[2] == pytest.approx(5.0, abs=1e-5)  # west wall at x = -2
+    assert r[3] == 20.0  # down the corridor: nothing within 20 m
+    # from exactly on a cell face, straight down (cos(3 pi/2) is -1.8e-16, not 0): must not stall on the face
+    r = corridor.raycast(15.0, 3.0, np.array([1.5 * math.pi, math.pi]), 20.0, max_iterations=200)
+    assert r == pytest.approx([1.4, 17.0], abs=1e-5)
+
+
+def test_raycast_matches_brute_force(corridor: World) -> None:
+    rng = np.random.default_rng(7)
+    poses = [(0.0, 0.0), (3.0, 3.5), (10.0, 3.2), (24.0, 10.0), (26.0, 6.0), (23.3, 13.9), (-1.0, 0.9)]
+    for x, y in poses:
+        angles = rng.uniform(-math.pi, math.pi, 40)
+        fast = corridor.raycast(x, y, angles, 12.0)
+        for a, r in zip(angles, fast):
+            assert r == pytest.approx(brute_range(corridor, x, y, a, 12.0), abs=0.0015), (x, y, a)
+
+
+def test_raycast_from_inside_a_wall_or_outside_is_zero(corridor: World) -> None:
+    assert corridor.raycast(10.0, 6.0, np.array([0.0, 1.0]), 20.0).tolist() == [0.0, 0.0]
+    assert corridor.raycast(100.0, 0.0, np.array([0.0]), 20.0).tolist() == [0.0]
+
+
+def test_dynamic_obstacles_by_request_and_schedule() -> None:
+    w = World.load_builtin("corridor")
+    beam = np.array([0.0])
+    assert w.raycast(5.0, 2.3, beam, 20.0)[0] == 20.0
+    assert not w.circle_collides(8.5, 2.8, 0.63)
+    w.set_obstacle("box", None)
+    assert w.raycast(5.0, 2.3, beam, 20.0)[0] == pytest.approx(4.0)
+    assert w.clearance_m(8.5, 2.8) == pytest.approx(0.5)
+    assert w.circle_collides(8.5, 2.8, 0.63)
+    w.set_obstacle("extra", [6.0, 2.0, 6.5, 2.6])
+    assert w.raycast(5.0, 2.3, beam, 20.0)[0] == pytest.approx(1.0)
+    assert w.active_obstacle_ids() == ["box", "extra"]
+    w.remove_obstacle("extra")
+    w.clear_obstacles()
+    assert w.raycast(5.0, 2.3, beam, 20.0)[0] == 20.0
+    with pytest.raises(WorldError):
+        w.remove_obstacle("box")
+    with pytest.raises(WorldError, match="min < max"):
+        w.set_obstacle("bad", [1.0, 1.0, 0.0, 2.0])
+    w.dynamic["box"].appear_at_s = 5.0
+    w.dynamic["box"].vanish_at_s = 8.0
+    assert not w.apply_schedule(4.9)
+    assert w.apply_schedule(5.0) and w.active_obstacle_ids() == ["box"]
+    assert w.apply_schedule(8.0) and w.active_obstacle_ids() == []
+
+
+def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) -> None:  # noqa: ANN001
+    yml, pgm = corridor.write_map(tmp_path / "world")
+    text = yml.read_text()
+    assert "mode: trinary" in text and "origin: [-2.5, -2, 0.0]" in text and "resolution: 0.05" in text
+    raw = pgm.read_bytes()
+    assert raw.startswith(b"P5\n")
+    assert set(np.unique(np.frombuffer(raw[-640 * 350:], dtype=np.uint8)).tolist()) == {0, 254}
+    again = World.load_map_yaml(yml)
+    assert np.array_equal(again.solid, corridor.solid)
+    assert again.origin_xy == pytest.approx(corridor.origin_xy)
+    # a map with an unknown (205) patch: that patch is solid for the simulator
+    from PIL import Image
+
+    img = np.full((40, 60), 254, dtype=np.uint8)
+    img[10:20, 30:40] = 205
+    img[0, :] = 0
+    Image.fromarray(img).save(tmp_path / "m.png")
+    (tmp_path / "m.yaml").write_text("image: m.png\nresolution: 0.1\norigin: [1.0, 2.0, 0.0]\nnegate: 0\n"
+                                     "occupied_thresh: 0.65\nfree_thresh: 0.196\n")
+    m = load_world(map_yaml=str(tmp_path / "m.yaml"))
+    assert m.shape == (40, 60)
+    assert m.is_solid(1.0 + 3.5, 2.0 + (40 - 15) * 0.1)  # the unknown patch (image rows 10..19 from the top)
+    assert not m.is_solid(1.0 + 1.0, 2.0 + 1.0)
+    assert m.is_solid(1.0 + 1.0, 2.0 + 3.95)  # image row 0 = top = max y
+    (tmp_path / "bad.yaml").write_text("image: m.png\nresolution: 0.1\norigin: [0, 0, 0.5]\n")
+    with pytest.raises(WorldError, match="yaw"):
+        World.load_map_yaml(tmp_path / "bad.yaml")
+    with pytest.raises(WorldError, match="missing.yaml"):
+        World.load_map_yaml(tmp_path / "missing.yaml")
+
+
+def test_render_map_cli(tmp_path) -> None:  # noqa: ANN001
+    out = tmp_path / "run" / "world"
+    subprocess.run([sys.executable, "-m", "services.sim.render_map", "--world", "loop", "--out", str(out)],
+                   check=True, capture_output=True)
+    w = World.load_map_yaml(out.with_suffix(".yaml"))
+    assert np.array_equal(w.solid, World.load_builtin("loop").solid)
+
+
+
+def test_render_map_names_a_bad_world(tmp_path, capsys) -> None:  # noqa: ANN001
+    from services.sim.render_map import main
+
+    assert main(["--world", "nope", "--out", str(tmp_path / "w")]) == 2
+    assert "no built-in world 'nope'" in capsys.readouterr().err
