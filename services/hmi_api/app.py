@@ -48,6 +48,22 @@ Angle = Annotated[float, msgspec.Meta(ge=-1e3, le=1e3, description="rad, wrapped
 Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX)]
 
 
+MapName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$",
+                                      description="a map name: letters, digits, '_', '-', '.'; no path")]
+
+
+class MapSaveIn(msgspec.Struct, forbid_unknown_fields=True):
+    """Save the map being built as ``<name>.yaml`` + ``<name>.pgm`` in the robot's maps folder."""
+
+    name: MapName
+
+
+class MapStopIn(msgspec.Struct, forbid_unknown_fields=True):
+    """Stop mapping and navigate on ``map`` (a saved map's name or YAML path; empty: the map saved last)."""
+
+    map: Annotated[str, msgspec.Meta(max_length=4096)] = ""
+
+
 class LoginRequest(msgspec.Struct, forbid_unknown_fields=True):
     password: Annotated[str, msgspec.Meta(max_length=1024)]
 
@@ -254,6 +270,24 @@ async def initial_pose(request: Request, data: PoseIn) -> ActionReply:
     return ActionReply(ok=True, message=r.message or "initial pose set")
 
 
+@post("/mapping/start", status_code=HTTP_200_OK, summary="Start building a new map (SLAM) from the current pose")
+async def mapping_start(request: Request) -> ActionReply:
+    r = await _backend(request).mapping_mode("mapping")
+    return ActionReply(ok=True, message=r.message or "mapping")
+
+
+@post("/mapping/save", status_code=HTTP_200_OK, summary="Save the map being built (ROS map_server YAML + PGM)")
+async def mapping_save(request: Request, data: MapSaveIn) -> ActionReply:
+    r = await _backend(request).save_map(data.name)
+    return ActionReply(ok=True, message=r.message)
+
+
+@post("/mapping/stop", status_code=HTTP_200_OK, summary="Stop mapping; localize (AMCL) on a saved map")
+async def mapping_stop(request: Request, data: MapStopIn) -> ActionReply:
+    r = await _backend(request).mapping_mode("navigation", data.map)
+    return ActionReply(ok=True, message=r.message or "navigation")
+
+
 @get("/map", summary="Map metadata and the map image (PNG, base64)")
 async def map_json(request: Request) -> dict:
     b = _backend(request)
@@ -452,7 +486,8 @@ def create_app(backend: Backend) -> Litestar:
         guards=[require_token],
         route_handlers=[
             logout, status, robot_info, drive_enable, drive_disable, drive_estop, drive_release, jog, goal,
-            goal_cancel, home, initial_pose, map_json, map_png, velocities, velocities_csv, poses_list, poses_add,
+            goal_cancel, home, initial_pose, mapping_start, mapping_save, mapping_stop, map_json, map_png, velocities,
+            velocities_csv, poses_list, poses_add,
             poses_export, poses_import, poses_run, poses_patch, poses_delete, poses_move, poses_send, ws,
         ],
         security=[{"BearerToken": []}],

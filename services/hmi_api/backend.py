@@ -26,9 +26,11 @@ from proto.messages import (
     GoalReply,
     GoalRequest,
     InitialPoseRequest,
+    ModeRequest,
     OccupancyGrid,
     Pose2D,
     Reply,
+    SaveMapRequest,
     Twist2D,
     Waypoint,
     WaypointsRequest,
@@ -232,6 +234,14 @@ class Backend:
     async def initial_pose(self, x: float, y: float, theta: float) -> Reply:
         return await self.reply_query("localization/initial_pose",
                                       InitialPoseRequest(pose=Pose2D(x=x, y=y, theta=theta)))
+
+    async def mapping_mode(self, mode: str, map_yaml: str = "") -> Reply:
+        """``localization/mode``: ``mapping`` (a new map) or ``navigation`` on ``map_yaml``."""
+        return await self.reply_query("localization/mode", ModeRequest(mode=mode, map_yaml=map_yaml))
+
+    async def save_map(self, name: str) -> Reply:
+        """``localization/save_map``; the reply's message is the saved YAML's path on the robot."""
+        return await self.reply_query("localization/save_map", SaveMapRequest(name=name))
 
     async def send_pose(self, pose: PoseRecord) -> GoalReply:
         return await self.goal(pose.x, pose.y, pose.theta, f"pose{pose.id}-{uuid.uuid4().hex[:6]}")

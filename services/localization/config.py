@@ -29,6 +29,9 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     - odom/scan synchronisation: the odom pose at a scan's stamp is interpolated from ``odom_history_s`` of odom;
       a scan newer than the last odom waits for the next odom, or is extrapolated up to ``scan_odom_tolerance_s``.
       Odometry that jumps by more than ``odom_jump_m`` between two messages (drive restarted) re-anchors AMCL.
+    - mapping: ``maps_dir`` is where ``localization/save_map`` writes (empty: ``<state_dir>/maps``); a scan is
+      processed only after ``mapping_min_travel_m`` / ``mapping_min_turn_rad`` of odometry; the growing map is
+      published every ``map_publish_period_s`` (s of clock time). The map frame starts at the initial pose.
     """
 
     map_yaml: str = ""
@@ -48,6 +51,10 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     odom_history_s: float = 2.0
     scan_odom_tolerance_s: float = 0.1
     odom_jump_m: float = 1.0
+    maps_dir: str = ""
+    mapping_min_travel_m: float = 0.1
+    mapping_min_turn_rad: float = 0.1
+    map_publish_period_s: float = 2.0
 
     def __post_init__(self) -> None:
         self.validate()
@@ -64,6 +71,9 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
                 raise ValueError(f"{name} must be >= 0")
         if not self.odom_history_s > 0:
             raise ValueError("odom_history_s must be > 0")
+        for name in ("mapping_min_travel_m", "mapping_min_turn_rad", "map_publish_period_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0")
         if not self.odom_jump_m > 0:
             raise ValueError("odom_jump_m must be > 0")
 

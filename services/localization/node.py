@@ -16,6 +16,7 @@ import contextlib
 import json
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +33,10 @@ from proto.messages import (
     Reply,
     Transform2D,
 )
+from services.common.node import Node, TopicPublisher
 from services.common.service import ServiceContext
 from services.localization.amcl import Amcl, select_beams, wrap_angle
-from services.localization.config import MAPPING_MODULE, LocalizationConfig
+from services.localization.config import MAPPING_MODULE, LocalizationConfig, mapping_available
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
 
 POSE_FILE = "localization_pose.json"
@@ -86,10 +88,29 @@ def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
 
+@dataclass
+class Outputs:
+    """The service's publishers: ``map`` (latched), ``pose`` (latched like amcl_pose), ``tf/map_odom`` (latched),
+    ``particles``."""
+
+    map: TopicPublisher
+    pose: TopicPublisher
+    tf: TopicPublisher
+    particles: TopicPublisher
+
+    @classmethod
+    def declare(cls, node: Node) -> Outputs:
+        return cls(node.publisher("map", latched=True), node.publisher("pose", latched=True),
+                   node.publisher("tf/map_odom", latched=True), node.publisher("particles"))
+
+
 class LocalizationNode:
     """Wires the map and the AMCL core to Zenoh (all callbacks run on the event loop)."""
 
-    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig) -> None:
+    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig, *, outputs: Outputs | None = None,
+                 wire: bool = True) -> None:
+        """``outputs``: publishers shared with the mapping mode (made here when None); ``wire``: subscribe to the
+        sensors and serve the queries here (False when a mode switcher dispatches to this node)."""
         self.ctx = ctx
         self.cfg = cfg
         self.node = ctx.node
@@ -103,17 +124,17 @@ class LocalizationNode:
         self.stats: collections.Counter[str] = collections.Counter()
         self.initialised = False
         self.pose_file = Path(cfg.state_dir) / POSE_FILE if cfg.state_dir else None
-        self.pub_map = self.node.publisher("map", latched=True)
-        self.pub_pose = self.node.publisher("pose", latched=True)  # latched like amcl_pose
-        self.pub_tf = self.node.publisher("tf/map_odom", latched=True)
-        self.pub_particles = self.node.publisher("particles")
+        outputs = outputs or Outputs.declare(self.node)
+        self.pub_map, self.pub_pose, self.pub_tf, self.pub_particles = (
+            outputs.map, outputs.pose, outputs.tf, outputs.particles)
         self._load_map()
         self._initialise()
-        self.node.subscribe("odom", self.on_odom)
-        self.node.subscribe("scan", self.on_scan)
-        self.node.queryable("localization/initial_pose", self.on_initial_pose)
-        self.node.queryable("localization/global", self.on_global)
-        self.node.queryable("localization/nomotion", self.on_nomotion)
+        if wire:
+            self.node.subscribe("odom", self.on_odom)
+            self.node.subscribe("scan", self.on_scan)
+            self.node.queryable("localization/initial_pose", self.on_initial_pose)
+            self.node.queryable("localization/global", self.on_global)
+            self.node.queryable("localization/nomotion", self.on_nomotion)
         self.node.extra_stats["localization"] = self.stats
 
     # ------------------------------------------------------------------ map and start-up
@@ -346,7 +367,7 @@ class LocalizationNode:
 
 async def run(ctx: ServiceContext) -> None:
     cfg: LocalizationConfig = ctx.config["localization"]
-    if cfg.mode == "mapping":
+    if cfg.mode == "mapping" or mapping_available():  # the mapping module also switches modes at runtime
         import importlib
 
         await importlib.import_module(MAPPING_MODULE).run(ctx)

@@ -277,6 +277,24 @@ for (const b of $$(".tool")) {
     bigMap.tool = b.dataset.tool;
   });
 }
+// mapping: start SLAM, save the map under a name, then localize (AMCL) on the saved map
+let lastSavedMap = "";
+$("#btn-map-start").addEventListener("click", () => {
+  if (confirm("Start a new map? Localization switches to mapping until you navigate on a saved map.")) {
+    act("start mapping", () => api("POST", "/api/mapping/start"));
+  }
+});
+$("#btn-map-save").addEventListener("click", async () => {
+  const name = prompt("Save the map as (letters, digits, _ - .):", lastSavedMap || "map");
+  if (!name) return;
+  const r = await act("save map", () => api("POST", "/api/mapping/save", { name }));
+  if (r) lastSavedMap = name;
+});
+$("#btn-map-navigate").addEventListener("click", () => {
+  const map = prompt("Navigate on which saved map (name or YAML path; empty: the last saved)?", lastSavedMap);
+  if (map === null) return;
+  act("navigate on map", () => api("POST", "/api/mapping/stop", { map }));
+});
 $("#btn-fit").addEventListener("click", () => bigMap.fit());
 $("#btn-zoom-in").addEventListener("click", () => bigMap.zoom(1.25));
 $("#btn-zoom-out").addEventListener("click", () => bigMap.zoom(0.8));

@@ -1,0 +1,115 @@
+"""Holonomic DWA: dynamic window, exact rollout, critics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.nav.costmap import LETHAL, Costmap2D, Footprint, InflationLayer
+from services.nav.dwa import DwaConfig, DwaPlanner, Limits, wrap
+
+
+def planner(**cfg) -> DwaPlanner:  # noqa: ANN003
+    return DwaPlanner(DwaConfig(**cfg), Limits(), Footprint(0.3))
+
+
+def free_map(n: int = 100) -> Costmap2D:
+    return Costmap2D.empty(n, n, 0.05)
+
+
+def straight_path(y: float = 2.5, x0: float = 1.0, x1: float = 4.5) -> np.ndarray:
+    n = int((x1 - x0) / 0.05) + 1
+    return np.column_stack([np.linspace(x0, x1, n), np.full(n, y), np.zeros(n)])
+
+
+def test_window_respects_acceleration_and_velocity_limits() -> None:
+    p = planner(window_dt_s=0.1)
+    s = p.samples((0.15, 0.0, 0.45))
+    lim = p.limits
+    assert s[:, 0].min() >= 0.15 - lim.ax * 0.1 - 1e-12 and s[:, 0].max() <= lim.vx_max + 1e-12
+    assert s[:, 2].max() <= lim.wz_max + 1e-12 and s[:, 2].min() >= 0.45 - lim.aw * 0.1 - 1e-12
+    assert (s[:, 1] == 0.0).any()  # stopping sideways is always a candidate
+    assert len(s) >= 20 * 5 * 10
+    # a current velocity beyond the box is brought back inside
+    s2 = p.samples((0.5, 0.0, 0.0))
+    assert s2[:, 0].max() <= lim.vx_max + 1e-12
+
+
+def test_rollout_is_exact_on_se2() -> None:
+    p = planner(sim_time_s=2.0, sim_steps=20)
+    twists = np.array([[0.2, -0.1, 0.4], [0.1, 0.2, 0.0]])
+    traj = p.rollout((1.0, 2.0, 0.7), twists)
+    for k, (vx, vy, wz) in enumerate(twists):
+        x, y, th = 1.0, 2.0, 0.7
+        dt = 1e-4
+        for _ in range(int(round(2.0 / dt))):
+            x += dt * (vx * math.cos(th) - vy * math.sin(th))
+            y += dt * (vx * math.sin(th) + vy * math.cos(th))
+            th += dt * wz
+        assert traj[k, -1] == pytest.approx([x, y, th], abs=1e-4)
+
+
+def test_follows_a_straight_path_forward() -> None:
+    p = planner()
+    res = p.plan(free_map(), (1.0, 2.5, 0.0), (0.1, 0.0, 0.0), straight_path(), (4.5, 2.5, 0.0))
+    assert res.ok
+    vx, vy, wz = res.twist
+    assert vx > 0.1 and abs(vy) < 0.05 and abs(wz) < 0.1
+    assert set(res.scores) == {"obstacle", "path_distance", "path_alignment", "goal_distance", "goal_heading",
+                               "oscillation"}
+
+
+def test_sidesteps_to_a_path_beside_the_robot() -> None:
+    p = planner()
+    res = p.plan(free_map(), (1.0, 2.3, 0.0), (0.0, 0.0, 0.0), straight_path(2.5), (4.5, 2.5, 0.0))
+    assert res.twist[1] > 0.0
+
+
+def test_obstacle_critic_rejects_collisions_and_reports_none_valid() -> None:
+    cm = free_map()
+    cm.cost[:, 32:40] = LETHAL  # wall from x = 1.6 m
+    InflationLayer(0.3, 0.5, 3.0).update(cm)
+    p = planner()
+    res = p.plan(cm, (1.0, 2.5, 0.0), (0.2, 0.0, 0.0), straight_path(), (4.5, 2.5, 0.0))
+    end = res.trajectory[-1]
+    assert end[0] < 1.6 - 0.3
+    # boxed in: every sample collides
+    cm2 = Costmap2D.empty(100, 100, 0.05, value=LETHAL)
+    res2 = p.plan(cm2, (1.0, 2.5, 0.0), (0.0, 0.0, 0.0), straight_path(), (4.5, 2.5, 0.0))
+    assert not res2.ok and "no valid trajectory" in res2.error and res2.twist == (0.0, 0.0, 0.0)
+
+
+def test_goal_heading_critic_turns_towards_the_goal_heading_near_the_goal() -> None:
+    p = planner()
+    path = straight_path(2.5, 1.0, 1.2)
+    res = p.plan(free_map(), (1.15, 2.5, 0.0), (0.0, 0.0, 0.0), path, (1.2, 2.5, 1.5))
+    assert res.twist[2] > 0.0
+
+
+def test_oscillation_critic_penalises_sign_flips() -> None:
+    base = dict(weight_path_distance=0.0, weight_path_alignment=0.0, weight_goal_distance=0.0,
+                weight_goal_heading=0.0, weight_obstacle=0.0)
+    p = planner(weight_oscillation=1.0, **base)
+    res = p.plan(free_map(), (2.5, 2.5, 0.0), (0.0, 0.0, 0.0), straight_path(), (4.5, 2.5, 0.0),
+                 previous=(0.1, -0.1, 0.2))
+    assert res.twist[0] >= 0 and res.twist[1] <= 0 and res.twist[2] >= 0
+    assert res.scores["oscillation"] == 0.0
+
+
+def test_wrap() -> None:
+    assert wrap(math.pi) == pytest.approx(math.pi)
+    assert wrap(-math.pi) == pytest.approx(math.pi)
+    assert wrap(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
+    assert np.allclose(wrap(np.array([0.1, 2 * math.pi + 0.1])), [0.1, 0.1])
+
+
+def test_escapes_from_the_inscribed_zone() -> None:
+    cm = free_map()
+    cm.cost[:, :22] = LETHAL  # wall up to x = 1.1 m
+    InflationLayer(0.3, 0.5, 3.0).update(cm)
+    p = planner()
+    pose = (1.35, 2.5, 0.0)  # 0.25 m from the wall: inside the inscribed radius 0.3 m
+    res = p.plan(cm, pose, (0.0, 0.0, 0.0), straight_path(2.5, 1.35, 4.0), (4.0, 2.5, 0.0))
+    assert res.ok and res.twist[0] > 0.0
