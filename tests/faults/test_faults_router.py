@@ -21,7 +21,7 @@ from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
 
-SERVICES = ["sim", "drive", "lidar", "localization", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
 DATA = ["clock", "wheels", "scan", "tf/map_odom"]
 
 

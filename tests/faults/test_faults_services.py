@@ -1,4 +1,4 @@
-"""Faults against the simulated robot without nav (sim, drive, lidar, localization, hmi_api under ``zagv up``).
+"""Faults against the simulated robot (sim, drive, lidar, localization, nav, hmi_api under ``zagv up``).
 
 The lidar reaches the emulated LMS111 through a proxy the test can cut. One stack serves the module: garbage on
 every key a service subscribes to or serves, the LMS111 link cut, and SIGKILL of each service while the test
@@ -26,15 +26,17 @@ from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
 
-SERVICES = ["sim", "drive", "lidar", "localization", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
 #: the keys each service subscribes to (topics) or serves (queries), as the garbage must be counted
 SUBSCRIBED = {
     "sim": {"sim/teleport": True, "sim/obstacles": True},  # the clock's source does not subscribe to it
     "drive": {"clock": False, "cmd_vel": False, "drive/enable": True, "drive/estop": True},
     "lidar": {"clock": False},
     "localization": {"clock": False, "odom": False, "scan": False, "localization/initial_pose": True},
-    "hmi_api": {"clock": False, "odom": False, "pose": False, "wheels": False, "scan": False, "cmd_vel": False,
-                "nav/status": False, "nav/path": False, "particles": False, "tf/map_odom": False},
+    "nav": {"clock": False, "odom": False, "tf/map_odom": False, "pose": False, "scan": False, "map": False,
+            "nav/goal": True, "nav/cancel": True},
+    "hmi_api": {"clock": False, "map": False, "odom": False, "pose": False, "wheels": False, "scan": False,
+                "cmd_vel": False, "nav/status": False, "nav/path": False, "particles": False, "tf/map_odom": False},
 }
 GARBAGE = [b"\x00garbage", b"\xff" * 64, b"", b"\x93\x01\x02"]
 
