@@ -73,8 +73,15 @@ class Navigator:
         return cb
 
     def query(self, name: str, request, reply_type: type):  # noqa: ANN001, ANN201
-        replies = list(self.session.get(self.stack.keys(name), payload=codec.encode(request), timeout=10.0))
-        assert replies and replies[0].ok is not None, f"{name} did not answer"
+        """The reply to ``name``; asked again while nobody answers (a fresh service's health token comes up before
+        its queryables)."""
+        key = self.stack.keys(name)
+        payload = codec.encode(request)
+
+        def answered() -> list:
+            return [r for r in self.session.get(key, payload=payload, timeout=5.0) if r.ok is not None]
+
+        replies = wait_for_sync(answered, timeout_s=30, poll_s=0.2, message=f"{name} never answered")
         return codec.decode_as(reply_type, replies[0].ok.payload.to_bytes())
 
     def wait_sim(self, sim_t: float) -> None:
