@@ -50,6 +50,7 @@ class PoseTracker:
         self.map_odom: Pose | None = None
         self.pose: Pose | None = None
         self.pose_stamp = -math.inf
+        self.tf_stamp = -math.inf
         self.odom_at_pose: Pose | None = None
 
     def on_odom(self, msg: m.Odometry) -> None:
@@ -60,7 +61,7 @@ class PoseTracker:
     def on_tf(self, msg: m.Transform2D) -> None:
         p = (msg.x, msg.y, msg.theta)
         if all(math.isfinite(v) for v in p):
-            self.map_odom = p
+            self.map_odom, self.tf_stamp = p, msg.stamp
 
     def on_pose(self, msg: m.PoseWithCovariance) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
@@ -76,7 +77,10 @@ class PoseTracker:
         return self.pose
 
     def last_update(self) -> float:
-        return max(self.odom_stamp, self.pose_stamp)
+        """Stamp of the older of the two sources nav drives on: odometry, and localization (``pose`` or
+        ``tf/map_odom``, which localization publishes with every scan it uses). A hung drive, lidar or
+        localization therefore makes the pose stale and stops the robot (never driving blind on odometry)."""
+        return min(self.odom_stamp, max(self.pose_stamp, self.tf_stamp))
 
 
 def costmap_message(nav: Navigator, stamp: float) -> m.OccupancyGrid:
@@ -135,7 +139,7 @@ async def run(ctx: ServiceContext) -> None:
 
     node.subscribe("map", on_map, latched=True)
     node.subscribe("odom", tracker.on_odom)
-    node.subscribe("tf/map_odom", tracker.on_tf)
+    node.subscribe("tf/map_odom", tracker.on_tf, latched=True)  # a restarted nav knows the pose at once
     loc_state = {"answered": False}
 
     def on_pose(msg: m.PoseWithCovariance) -> None:
@@ -155,7 +159,7 @@ async def run(ctx: ServiceContext) -> None:
         else:
             log.info("localization refused an update at the goal: %s", reply.message)
 
-    node.subscribe("pose", on_pose)
+    node.subscribe("pose", on_pose, latched=True)
     node.subscribe("scan", on_scan)
 
     def status() -> m.NavStatus:
