@@ -172,6 +172,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     keys = Keys(plan.robot_id)
     expected = set(plan.services())
     ready = asyncio.Event()
+    stop = asyncio.Event()
     was_ready = False
 
     def on_change(name: str, up: bool) -> None:
@@ -179,13 +180,12 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
             nonlocal was_ready
             if expected <= watch.alive and not ready.is_set():
                 ready.set()
-            if was_ready and name in expected:
+            if was_ready and name in expected and not stop.is_set():
                 announce(f"zagv: {name} {'healthy again' if up else 'lost its health token'}")
         loop.call_soon_threadsafe(update)
 
     watch = HealthWatch(router, keys, on_change)
     supervisor = Supervisor()
-    stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     code = 0
@@ -215,6 +215,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         waiter.cancel()
         stopper.cancel()
     finally:
+        stop.set()
         announce("zagv: stopping")
         await supervisor.stop()
         watch.close()
