@@ -45,9 +45,14 @@ async def _start_route(stack: Stack) -> None:
     session = stack.session()
     request = WaypointsRequest(waypoints=[Waypoint(pose=Pose2D(x=x, y=y, theta=t), id=str(i + 1))
                                           for i, (x, y, t) in enumerate(CORRIDOR_ROUTE)])
-    reply = await query(session, stack.keys, "nav/waypoints", request, timeout_s=10.0)
-    if not reply.accepted:
-        raise RuntimeError(f"nav refused the benchmark route: {reply.reason}")
+    deadline = time.monotonic() + 60.0
+    while True:  # nav accepts goals once localization has given it a pose
+        reply = await query(session, stack.keys, "nav/waypoints", request, timeout_s=10.0)
+        if reply.accepted:
+            return
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"nav refused the benchmark route: {reply.reason}")
+        await asyncio.sleep(0.5)
 
 
 def _running_services(stack: Stack) -> list[str]:
