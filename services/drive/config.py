@@ -10,25 +10,27 @@ from services.drive.canlink import LinkSettings
 from services.drive.kinematics import SteeringLimits
 from services.drive.units import MotorUnits
 
+_LINK = LinkSettings()  # the link's defaults, repeated nowhere else
+
 
 class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     """Drive service settings. Times in s (sim seconds under ``use_sim_time``, except SDO, start-up and reconnect
     times, which are wall seconds like the bus itself); angles in rad; speeds in m/s.
     """
 
-    # CAN link (python-can interface + channel; "remote" + ws://... is the simulated bus)
-    can_interface: str = "remote"
-    can_channel: str = "ws://127.0.0.1:54701/"
-    can_bitrate: int = 0
-    node_ids: list[int] = msgspec.field(default_factory=lambda: [1, 2])
-    heartbeat_period_ms: int = 100
-    heartbeat_timeout_s: float = 0.5
-    feedback_timeout_s: float = 0.5
-    sdo_timeout_s: float = 0.3
-    configure_pdos: bool = True
-    tpdo_period_ms: int = 20
-    tpdo_slow_period_ms: int = 100
-    startup_timeout_s: float = 2.0
+    # CAN link (python-can interface + channel; "remote" + ws://... is the simulated bus); defaults: LinkSettings
+    can_interface: str = _LINK.interface
+    can_channel: str = _LINK.channel
+    can_bitrate: int = _LINK.bitrate
+    node_ids: list[int] = msgspec.field(default_factory=lambda: list(_LINK.node_ids))
+    heartbeat_period_ms: int = _LINK.heartbeat_period_ms
+    heartbeat_timeout_s: float = _LINK.heartbeat_timeout_s
+    feedback_timeout_s: float = _LINK.feedback_timeout_s
+    sdo_timeout_s: float = _LINK.sdo_timeout_s
+    configure_pdos: bool = _LINK.configure_pdos
+    tpdo_period_ms: int = _LINK.tpdo_period_ms
+    tpdo_slow_period_ms: int = _LINK.tpdo_slow_period_ms
+    startup_timeout_s: float = _LINK.startup_timeout_s
     reconnect_initial_s: float = 0.2
     reconnect_max_s: float = 2.0
 
