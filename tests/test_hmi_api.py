@@ -186,7 +186,9 @@ def test_status_map_and_websocket_from_robot_messages(hmi):
 
     def status():
         s = client.get("/api/status").json()
-        return s if s["odom"] and s["pose"] and s["nav"] and s["map"]["available"] else None
+        # "pose" is the odom-frame pose until localization's message arrives, so wait for the map frame
+        ready = s["odom"] and s["pose"] and s["pose"]["frame"] == "map" and s["nav"] and s["map"]["available"]
+        return s if ready else None
 
     s = wait_for_sync(status, timeout_s=10, message="status never showed the published messages")
     assert s["odom"]["x"] == 0.5 and s["odom"]["vy"] is None  # NaN travels as null
