@@ -43,7 +43,8 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     measured accuracy called for it: ``laser_model_type`` likelihood_field_prob (Nav2: likelihood_field),
     ``z_hit``/``z_rand`` 0.9/0.1 (0.5/0.5), ``sigma_hit`` 0.1 (0.2), ``update_min_d``/``update_min_a`` 0.1/0.1
     (0.25/0.2), ``recovery_alpha_slow``/``_fast`` 0.001/0.1 (ROS 1's; Nav2 disables recovery), ``laser_max_range``
-    -1 = the scan's range_max (Nav2: 100). ``global_localization_particles`` and ``recovery_sensor_reset`` are ours.
+    -1 = the scan's range_max (Nav2: 100). ``global_localization_particles``, ``recovery_sensor_reset`` and the
+    ``global_localization_temperature``/``_cooling`` annealing are ours.
     """
 
     min_particles: int = 500
@@ -75,6 +76,11 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     #: recovery particles are drawn from that many uniform candidates weighted by the current scan (sensor
     #: resetting) rather than uniformly, so that a kidnapped robot is found in a large map
     recovery_sensor_reset: bool = True
+    #: annealing after global localization: the first sensor update raises the likelihoods to 1/temperature
+    #: (a wider basin, so that hypotheses near the true pose survive next to one that fits a single scan better),
+    #: and each update multiplies the temperature by ``global_localization_cooling`` until it reaches 1
+    global_localization_temperature: float = 20.0
+    global_localization_cooling: float = 0.85
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -88,6 +94,8 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "recovery_alpha_slow": 0 <= self.recovery_alpha_slow <= 1,
             "recovery_alpha_fast": 0 <= self.recovery_alpha_fast <= 1,
             "update_min_d": self.update_min_d >= 0, "update_min_a": self.update_min_a >= 0,
+            "global_localization_temperature": self.global_localization_temperature >= 1,
+            "global_localization_cooling": 0 < self.global_localization_cooling <= 1,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -136,28 +144,36 @@ def kld_limit(k: int, pf_err: float, pf_z: float, min_particles: int, max_partic
 
 
 class LikelihoodField:
-    """Per-cell ``pz^3`` (``likelihood_field``) or ``log pz`` (``likelihood_field_prob``), padded by one cell that
-    holds the beyond-the-map value."""
+    """Per-corner ``pz^3`` (``likelihood_field``) or ``log pz`` (``likelihood_field_prob``), padded by one corner
+    that holds the beyond-the-map value.
+
+    The field lives on the lattice of cell *corners*: corner (i, j) sits at origin + (j, i) * resolution, and a beam
+    endpoint looks up its nearest corner. An occupied cell's surface is its boundary with a cell that is not
+    occupied, i.e. a line through corners, so a corner on it has distance 0 and the lookup's ±res/2 plateau is
+    centred on the wall. (A per-cell field puts the minimum at the centre of the wall cell, res/2 behind the
+    surface, and pulls every estimate res/2 towards the walls it sees: 2.5 cm on a 5 cm map.) Distances are
+    measured to the surface from both sides, so a beam ending deep inside a solid block scores like one ending
+    short of it (rendered worlds are solid outside their free space; thin-walled maps give amcl's field).
+    """
 
     def __init__(self, grid: OccupancyMap, params: AmclParams) -> None:
         self.grid = grid
         occupied = grid.data >= OCCUPIED_MIN
-        # obstacle surface: occupied cells next to a cell that is not occupied. Distances are measured to the
-        # surface from both sides, so a beam ending deep inside a solid block scores like one ending short of it
-        # (rendered worlds are solid outside their free space; thin-walled maps give amcl's field unchanged).
-        surface = occupied & ndimage.binary_dilation(~occupied, structure=np.ones((3, 3), dtype=bool))
+        # the four cells around each corner; beyond the map counts as occupied (no surface along the map edge)
+        padded = np.pad(occupied, 1, constant_values=True)
+        quads = (padded[:-1, :-1], padded[1:, :-1], padded[:-1, 1:], padded[1:, 1:])
+        any_occupied = quads[0] | quads[1] | quads[2] | quads[3]
+        all_occupied = quads[0] & quads[1] & quads[2] & quads[3]
+        surface = any_occupied & ~all_occupied  # (height + 1, width + 1) corners
         if surface.any():
-            # from a cell's centre to the surface cell's edge, so a beam ending on a wall scores as a hit on
-            # either side of the cell boundary
-            centre_m = ndimage.distance_transform_edt(~surface) * grid.resolution
-            dist_m = np.maximum(centre_m - 0.5 * grid.resolution, 0.0)
+            dist_m = ndimage.distance_transform_edt(~surface) * grid.resolution
         else:
-            dist_m = np.full(grid.data.shape, np.inf)
+            dist_m = np.full(surface.shape, np.inf)
         self.max_dist = params.laser_likelihood_max_dist
         self.distance_m = np.minimum(dist_m, self.max_dist)
         self.params = params
         self._range_max: float | None = None
-        self.table = np.empty((grid.height + 2, grid.width + 2), dtype=np.float32)
+        self.table = np.empty((grid.height + 3, grid.width + 3), dtype=np.float32)
         self.flat = self.table.reshape(-1)
 
     def prepare(self, range_max: float) -> None:
@@ -206,6 +222,8 @@ class ParticleFilter:
         self._poses_next = np.zeros((capacity, 3))
         self.weights = np.full(capacity, 1.0 / m)
         self.n = m
+        #: likelihoods are raised to 1/temperature (annealing after global localization; 1 = plain AMCL)
+        self.temperature = 1.0
         self.w_slow = 0.0
         self.w_fast = 0.0
         self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
@@ -273,6 +291,7 @@ class ParticleFilter:
         self._random_poses(self.poses[:n])
         self._set_uniform_weights(n)
         self.w_slow = self.w_fast = 0.0
+        self.temperature = self.params.global_localization_temperature
 
     # ------------------------------------------------------------------ motion
 
@@ -335,9 +354,14 @@ class ParticleFilter:
             # product of beam likelihoods, exp(sum log pz), shifted by its maximum to stay in range
             log_max = float(like.max())
             like -= log_max
+            if self.temperature > 1.0:
+                like /= self.temperature
             np.exp(like, out=like)
         else:
             like += 1.0
+            if self.temperature > 1.0:
+                np.power(like, 1.0 / self.temperature, out=like)
+        self.temperature = max(1.0, self.temperature * p.global_localization_cooling)
         w = self.weights[:n]
         w *= like
         total = float(w.sum())
@@ -379,15 +403,16 @@ class ParticleFilter:
         mx, my, mth = mount
         n = stop - start
         b = rc.size
-        # laser pose of each particle, in grid cells (+1 for the padding border)
+        # laser pose of each particle, in corner-lattice units
         th = poses[start:stop, 2]
         cth, sth = self._percol[0, :n], self._percol[1, :n]
         np.cos(th, out=cth)
         np.sin(th, out=sth)
         lx = poses[start:stop, 0] + cth * mx - sth * my - ox
         ly = poses[start:stop, 1] + sth * mx + cth * my - oy
-        gx = (c0 * lx + s0 * ly) / res + 1.0
-        gy = (-s0 * lx + c0 * ly) / res + 1.0
+        # nearest corner = floor(cell coordinate + 0.5); +1 for the padding border
+        gx = (c0 * lx + s0 * ly) / res + 1.5
+        gy = (-s0 * lx + c0 * ly) / res + 1.5
         ga = self._percol[2, :n]
         np.add(th, mth - oyaw, out=ga)
         cga, sga = self._percol[3, :n], self._percol[4, :n]
@@ -411,9 +436,9 @@ class ParticleFilter:
         np.multiply(cga[:, None], rs[None, :], out=tmp)
         by += tmp
         by += gy[:, None]
-        width2 = grid.width + 2
+        width2 = grid.width + 3
         np.clip(bx, 0.0, width2 - 1.0, out=bx)
-        np.clip(by, 0.0, grid.height + 1.0, out=by)
+        np.clip(by, 0.0, grid.height + 2.0, out=by)
         np.copyto(ix, bx, casting="unsafe")
         np.copyto(iy, by, casting="unsafe")
         iy *= width2
