@@ -66,7 +66,8 @@ class Stack:
     # ------------------------------------------------------------------ lifetime
 
     def start(self, ready_timeout_s: float = 90.0) -> Stack:
-        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1"}
+        # ZAGV_PARENT_PID: `zagv up` stops (and with it every service) when this process dies, however it dies
+        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1", "ZAGV_PARENT_PID": str(os.getpid())}
         self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, cwd=REPO_ROOT, env=env, start_new_session=True)
         threading.Thread(target=self._read, daemon=True).start()

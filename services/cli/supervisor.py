@@ -19,6 +19,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from services.cli.common import print_line
+
 log = logging.getLogger("zagv.supervisor")
 
 
@@ -67,7 +69,7 @@ class Supervisor:
         stable_after_s: float = 30.0,
     ) -> None:
         self.children: dict[str, ChildState] = {}
-        self.out = out or (lambda line: print(line, flush=True))
+        self.out = out or print_line
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
         self.stable_after_s = stable_after_s

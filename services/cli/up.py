@@ -22,7 +22,9 @@ from pathlib import Path
 import zenoh
 
 from proto.keys import Keys
+from services.cli.common import print_line
 from services.cli.supervisor import ChildSpec, Supervisor, python_module
+from services.common.lifetime import die_with_parent
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
@@ -265,8 +267,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    die_with_parent()  # started by a tool's Stack (scenario, bench, tests): stop when that tool dies
     plan = plan_from_args(args)
     with contextlib.suppress(KeyboardInterrupt):
-        return asyncio.run(run_stack(plan, announce=lambda s: print(s, flush=True)))
+        return asyncio.run(run_stack(plan, announce=print_line))
     return 130
 
