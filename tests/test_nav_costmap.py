@@ -166,3 +166,27 @@ def test_polygon_footprint_radii_and_contains() -> None:
     assert len(outline) >= 64 and fp.contains(outline * 0.99).all()
     with pytest.raises(ValueError):
         Footprint(polygon=((0, 0), (1, 1)))
+
+
+def test_incremental_global_update_equals_a_full_one() -> None:
+    rng = np.random.default_rng(7)
+    occ = np.zeros((200, 240), dtype=np.int8)
+    occ[(rng.random(occ.shape) > 0.995)] = 100
+    occ[:, :3] = -1
+    incremental = global_costmap(occ)
+    for k in range(12):
+        x, y = 1.0 + 0.8 * k, 2.0 + 0.3 * (k % 4)
+        angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+        ranges = rng.uniform(0.3, 4.0, angles.size)
+        ranges[rng.random(angles.size) > 0.8] = math.inf
+        incremental.add_scan(scan_from(x, y, list(ranges), list(angles)))
+        incremental.clear_footprint(x, y, 0.0)
+        incremental.update()
+        full = global_costmap(occ)
+        full.clear_obstacles()  # the next update recomputes every cell
+        full.obstacles.grid = incremental.obstacles.grid.copy()
+        full.update()
+        assert np.array_equal(incremental.master.cost, full.master.cost), f"step {k}"
+    incremental.clear_obstacles()
+    incremental.update()
+    assert np.array_equal(incremental.master.cost, global_costmap(occ).master.cost)

@@ -31,7 +31,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     controller_frequency_hz: float = 20.0
     planner_frequency_hz: float = 1.0
     status_frequency_hz: float = 5.0
-    scan_integration_hz: float = 10.0  # scans marked/cleared into the costmaps at most this often (~5 ms each)
+    # scans marked/cleared into the costmaps at most this often (~5 ms each); the local costmap is rebuilt at 5 Hz
+    scan_integration_hz: float = 5.0
     footprint: list[list[float]] = msgspec.field(default_factory=list)  # polygon [[x, y], ...]; empty: circle
     footprint_radius_m: float = 0.0
     # added to the footprint (Nav2's footprint_padding): covers the half-cell quantisation of the costmaps

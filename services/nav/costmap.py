@@ -390,7 +390,18 @@ class LayeredCostmap:
 
 
 class GlobalCostmap(LayeredCostmap):
-    """Costmap over the whole static map (its geometry follows the map)."""
+    """Costmap over the whole static map (its geometry follows the map).
+
+    Updates are incremental, like Nav2's updateBounds/updateCosts: scans and footprint clearing only change cells
+    within their reach of the robot, so ``update`` recomputes that window (grown by the inflation radius) and
+    keeps the rest of the master grid. A new map or cleared obstacles recompute everything.
+    """
+
+    def __init__(self, master: Costmap2D, static: StaticLayer, obstacles: ObstacleLayer | None,
+                 inflation: InflationLayer, footprint: Footprint) -> None:
+        super().__init__(master, static, obstacles, inflation, footprint)
+        self._full = True
+        self._dirty: list[float] | None = None  # world x_min, y_min, x_max, y_max changed since the last update
 
     def set_map(self, data: np.ndarray, resolution: float, origin_x: float, origin_y: float) -> None:
         self.static.set_map(data, resolution, origin_x, origin_y)
@@ -398,7 +409,57 @@ class GlobalCostmap(LayeredCostmap):
         if self.obstacles is not None:
             self.obstacles.grid = None
         self.inflation.distance_m = None
+        self._full = True
         self.update()
+
+    def _touch(self, x: float, y: float, reach_m: float) -> None:
+        box = [x - reach_m, y - reach_m, x + reach_m, y + reach_m]
+        d = self._dirty
+        self._dirty = box if d is None else [min(d[0], box[0]), min(d[1], box[1]), max(d[2], box[2]),
+                                             max(d[3], box[3])]
+
+    def add_scan(self, obs: ScanObservation) -> None:
+        super().add_scan(obs)
+        if self.obstacles is not None:
+            reach = max(self.obstacles.raytrace_max_range_m, self.obstacles.obstacle_max_range_m)
+            self._touch(obs.origin_x, obs.origin_y, reach + self.master.resolution)
+
+    def clear_footprint(self, x: float, y: float, theta: float) -> None:
+        super().clear_footprint(x, y, theta)
+        self._touch(x, y, self.footprint.circumscribed_radius_m + self.master.resolution)
+
+    def clear_obstacles(self) -> None:
+        super().clear_obstacles()
+        self._full = True
+
+    def update(self) -> None:
+        m = self.master
+        static = self.static.grid
+        same_geometry = (static is not None and static.cost.shape == m.cost.shape
+                         and static.resolution == m.resolution and static.origin_x == m.origin_x
+                         and static.origin_y == m.origin_y)
+        if self._full or not same_geometry or (self.obstacles is not None and self.obstacles.grid is None):
+            super().update()
+            self._full = False
+            self._dirty = None
+            return
+        if self._dirty is None:
+            return  # nothing changed since the last update
+        x0, y0, x1, y1 = self._dirty
+        self._dirty = None
+        pad = int(math.ceil(self.inflation.inflation_radius_m / m.resolution)) + 1
+        i0, j0 = m.world_to_map(x0, y0)
+        i1, j1 = m.world_to_map(x1, y1)
+        i0, j0 = max(int(i0) - pad, 0), max(int(j0) - pad, 0)
+        i1, j1 = min(int(i1) + pad + 1, m.height), min(int(j1) + pad + 1, m.width)
+        if i1 <= i0 or j1 <= j0:
+            return
+        window = m.cost[i0:i1, j0:j1]
+        np.copyto(window, static.cost[i0:i1, j0:j1])
+        if self.obstacles is not None:
+            marks = self.obstacles.grid[i0:i1, j0:j1]
+            np.maximum(window, marks, out=window, where=(window != NO_INFORMATION) | (marks > 0))
+        self.inflation.update(m, (i0, j0, i1, j1))
 
 
 class RollingCostmap(LayeredCostmap):
