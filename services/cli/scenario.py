@@ -503,7 +503,6 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
             mp = sc.mapping
             mapping = await run_mapping(c, sc.start, mp.route, mp.save_as, mp.jog_speed_mps, truth_yaml, RobotSpec(),
                                         progress)
-            progress(mapping.line())
         for run in range(1, sc.repeats + 1):
             try:
                 await place_robot(c, sc.start)

@@ -293,7 +293,8 @@ async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, s
         raise RuntimeError(f"localization/save_map refused: {saved.message}")
     map_yaml = saved.message
     f1 = map_agreement(map_yaml, truth_yaml)
-    progress(f"scenario: mapping: saved {map_yaml}; F1 {f1['f1']:.3f} against the ground truth")
+    progress(f"scenario: mapping: saved {map_yaml} after {jog_s:.0f} s (sim) of jogging; occupied-cell F1 "
+             f"{f1['f1']:.3f} against the ground truth")
     wall1 = time.monotonic()
     watch = NavMapWatch(c, load_map(map_yaml), since=c.sim_time - 0.25)  # localization's clock may trail ours
     try:
