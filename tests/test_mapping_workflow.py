@@ -70,9 +70,13 @@ def built_map_run(tmp_path_factory: pytest.TempPathFactory) -> BuiltMapRun:
         for g in result["runs"][0]["goals"]:
             e = g["error"]
             loc = offsets.get(g["id"])
-            in_map = "" if loc is None or None in e else \
-                " in the built map's frame {:+.3f} {:+.3f} {:+.3f}".format(*(a + b for a, b in zip(e, loc)))
-            print(f"  goal {g['id']}: reached {g['reached']} in {g['time_s']:.0f} s, error vs world {e}{in_map}")
+            if None in e:
+                print(f"  goal {g['id']}: not reached")
+                continue
+            in_map = "" if loc is None else \
+                "; in the built map's frame {:+.3f} {:+.3f} {:+.3f}".format(*(a + b for a, b in zip(e, loc)))
+            print(f"  goal {g['id']}: reached {g['reached']} in {g['time_s']:.0f} s (sim); error against the world "
+                  "{:+.3f} {:+.3f} {:+.3f}{}".format(*e, in_map))
     return run
 
 

@@ -8,6 +8,7 @@ Scenario TOML (keys fixed):
     start = [0.0, 0.0, 0.0]       # x, y (m), theta (rad)
     repeats = 10
     speed = 4.0                   # sim speed factor (sim s per wall s)
+    name = "corridor_table3"      # optional (default: the file name without .toml); description = "..." optional
     [[goals]]
     pose = [3.0, 0.1, 1.57]
     id = "1"                      # optional
@@ -15,7 +16,6 @@ Scenario TOML (keys fixed):
     rect = [9.0, 1.6, 10.0, 3.0]  # xmin, ymin, xmax, ymax (m)
     during_goal = 7               # 1-based index of the goal during whose leg it appears (removed after the leg)
     appear_after_s = 5.0          # sim seconds after that goal is sent
-    name = "corridor_table3"      # optional (default: the file name without .toml); description = "..." optional
     [mapping]                     # optional: build the map first by jogging, then run the goals on it
     route = [[4.0, 0.1, 0.0], [4.0, 0.1, 3.1]]  # waypoints [x, y, theta] jogged in order from `start` (world frame)
     save_as = "corridor_built"    # optional map name (default "<name>_built"): letters, digits, '_', '-', '.'
@@ -31,7 +31,9 @@ With ``[mapping]`` (the paper's mapping workflow, services/cli/scenario_mapping.
 route by ``cmd_vel`` while watching ``sim/ground_truth``, then the map is saved (``localization/save_map``), scored
 against the world's ground-truth map (occupied-cell F1), localization switches to AMCL on it (``localization/mode``)
 and, once nav's costmap follows the saved map, the goals run as above. The JSON gains ``"mapping": {"route_length_m",
-"driven_m", "jog_time_s", "jog_wall_s", "map_yaml", "map_f1": {"precision", "recall", "f1", ...}}``.
+"driven_m", "jog_time_s", "jog_wall_s", "map_yaml", "map_f1": {"precision", "recall", "f1", ...}, "nav_map_wait_s",
+"late_jog_commands"}`` (jog commands sent more than the drive's 0.2 s command timeout after the previous one: the sim
+ran faster than the machine kept up with).
 """
 
 from __future__ import annotations

@@ -39,6 +39,7 @@ KP_XY = 1.0  # 1/s: the approach speed near a waypoint is its distance per secon
 KP_YAW = 1.5  # 1/s
 CLEARANCE_MARGIN_M = 0.1  # route clearance beyond the chassis radius (the jog is not exact)
 COMMAND_PERIOD_S = 0.05  # sim s between cmd_vel messages (drive stops after its cmd_timeout_s, 0.2 s)
+TRUTH_TIMEOUT_S = 10.0  # wall s without ground truth before the jog gives up (the sim died)
 
 
 def _wrap(a: float) -> float:
@@ -136,11 +137,13 @@ class MappingResult:
     map_yaml: str
     map_f1: dict[str, Any]
     nav_map_wait_s: float  # wall
+    late_commands: int = 0
 
     def to_json(self) -> dict[str, Any]:
         return {"route_length_m": round(self.route_length_m, 3), "driven_m": round(self.driven_m, 3),
                 "jog_time_s": round(self.jog_time_s, 3), "jog_wall_s": round(self.jog_wall_s, 3),
-                "map_yaml": self.map_yaml, "map_f1": self.map_f1, "nav_map_wait_s": round(self.nav_map_wait_s, 3)}
+                "map_yaml": self.map_yaml, "map_f1": self.map_f1, "nav_map_wait_s": round(self.nav_map_wait_s, 3),
+                "late_jog_commands": self.late_commands}
 
     def line(self) -> str:
         f = self.map_f1
@@ -176,11 +179,24 @@ def check_route(start: Pose, route: list[Pose], truth_yaml: str | Path, spec: Ro
         raise RuntimeError("the mapping route is not clear of the walls: " + "; ".join(problems))
 
 
-async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> tuple[float, float]:  # noqa: ANN001
-    """Drive the route by ``cmd_vel``; returns (driven distance m, sim time s). RuntimeError on a collision or a
-    waypoint not reached within a generous sim-time allowance."""
+@dataclass
+class JogStats:
+    driven_m: float = 0.0
+    time_s: float = 0.0  # sim
+    commands: int = 0
+    late_commands: int = 0  # sent more than LATE_COMMAND_S (sim) after the previous one: drive may have stopped
+    max_gap_s: float = 0.0  # sim
+
+
+LATE_COMMAND_S = 0.2  # the drive's default cmd_timeout_s
+
+
+async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:  # noqa: ANN001
+    """Drive the route by ``cmd_vel``. RuntimeError on a collision or a waypoint not reached within a generous
+    sim-time allowance. Commands that come late (the sim outruns this process) are counted in the stats."""
     pub = c.session.declare_publisher(c.keys("cmd_vel"))
     t_start = c.sim_time
+    stats = JogStats()
     driven = 0.0
     assert c.truth is not None
     last_xy = (c.truth.pose.x, c.truth.pose.y)
@@ -194,7 +210,10 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
             sent_at = -math.inf
             while True:
                 c.truth_changed.clear()
-                await c.truth_changed.wait()
+                try:
+                    await asyncio.wait_for(c.truth_changed.wait(), TRUTH_TIMEOUT_S)
+                except TimeoutError:
+                    raise RuntimeError(f"no sim/ground_truth for {TRUTH_TIMEOUT_S:.0f} s while jogging") from None
                 gt = c.truth
                 p = gt.pose
                 driven += math.hypot(p.x - last_xy[0], p.y - last_xy[1])
@@ -211,6 +230,11 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
                 if gt.stamp - sent_at >= COMMAND_PERIOD_S:
                     vx, vy, wz = jog_command(pose, target, spec, speed_mps)
                     pub.put(codec.encode(m.Twist2D(stamp=gt.stamp, vx=vx, vy=vy, wz=wz)))
+                    if math.isfinite(sent_at):
+                        gap = gt.stamp - sent_at
+                        stats.max_gap_s = max(stats.max_gap_s, gap)
+                        stats.late_commands += gap > LATE_COMMAND_S
+                    stats.commands += 1
                     sent_at = gt.stamp
             progress(f"scenario: mapping: waypoint {k}/{len(route)} ({target[0]:.2f}, {target[1]:.2f}, "
                      f"{target[2]:.2f}) at {c.sim_time - t_start:.0f} s")
@@ -220,7 +244,8 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
         c.jogging = False
         pub.put(codec.encode(m.Twist2D(stamp=c.sim_time)))
         pub.undeclare()
-    return driven, c.sim_time - t_start
+    stats.driven_m, stats.time_s = driven, c.sim_time - t_start
+    return stats
 
 
 class NavMapWatch:
@@ -286,8 +311,12 @@ async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, s
     progress(f"scenario: mapping: jogging {len(route)} waypoints ({route_length_m(start, route):.1f} m) at "
              f"{speed_mps:.2f} m/s")
     wall0 = time.monotonic()
-    driven, jog_s = await jog(c, route, spec, speed_mps, progress)
-    jog_wall = time.monotonic() - wall0
+    stats = await jog(c, route, spec, speed_mps, progress)
+    jog_wall, jog_s = time.monotonic() - wall0, stats.time_s
+    if stats.late_commands:
+        progress(f"scenario: mapping: {stats.late_commands} of {stats.commands} jog commands came more than "
+                 f"{LATE_COMMAND_S} s (sim) after the previous one (longest gap {stats.max_gap_s:.2f} s): the sim runs "
+                 "faster than this machine keeps up with; a lower `speed` jogs more smoothly")
     saved = await c.query("localization/save_map", m.SaveMapRequest(name=save_as), timeout_s=30.0)
     if not saved.ok:
         raise RuntimeError(f"localization/save_map refused: {saved.message}")
@@ -306,5 +335,5 @@ async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, s
     finally:
         watch.close()
     progress(f"scenario: mapping: {mode.message}; nav follows the saved map")
-    return MappingResult(route_length_m(start, route), driven, jog_s, jog_wall, map_yaml, f1,
-                         time.monotonic() - wall1)
+    return MappingResult(route_length_m(start, route), stats.driven_m, jog_s, jog_wall, map_yaml, f1,
+                         time.monotonic() - wall1, stats.late_commands)
