@@ -39,6 +39,7 @@ KP_XY = 1.0  # 1/s: the approach speed near a waypoint is its distance per secon
 KP_YAW = 1.5  # 1/s
 CLEARANCE_MARGIN_M = 0.1  # route clearance beyond the chassis radius (the jog is not exact)
 COMMAND_PERIOD_S = 0.05  # sim s between cmd_vel messages (drive stops after its cmd_timeout_s, 0.2 s)
+LATE_COMMAND_S = 0.2  # the drive's default cmd_timeout_s: a command later than this found the robot stopping
 TRUTH_TIMEOUT_S = 10.0  # wall s without ground truth before the jog gives up (the sim died)
 
 
@@ -188,9 +189,6 @@ class JogStats:
     max_gap_s: float = 0.0  # sim
 
 
-LATE_COMMAND_S = 0.2  # the drive's default cmd_timeout_s
-
-
 async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:  # noqa: ANN001
     """Drive the route by ``cmd_vel``. RuntimeError on a collision or a waypoint not reached within a generous
     sim-time allowance. Commands that come late (the sim outruns this process) are counted in the stats."""
@@ -200,6 +198,7 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
     driven = 0.0
     assert c.truth is not None
     last_xy = (c.truth.pose.x, c.truth.pose.y)
+    sent_at = -math.inf
     c.jogging = True
     try:
         for k, target in enumerate(route, 1):
@@ -207,7 +206,6 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
             need_s = math.hypot(target[0] - p.x, target[1] - p.y) / speed_mps \
                 + abs(_wrap(target[2] - p.theta)) / spec.wz_max_radps
             deadline = c.sim_time + 3.0 * need_s + 30.0
-            sent_at = -math.inf
             while True:
                 c.truth_changed.clear()
                 try:
