@@ -8,6 +8,7 @@ Scenario TOML (keys fixed):
     start = [0.0, 0.0, 0.0]       # x, y (m), theta (rad)
     repeats = 10
     speed = 4.0                   # sim speed factor (sim s per wall s)
+    name = "corridor_table3"      # optional (default: the file name without .toml); description = "..." optional
     [[goals]]
     pose = [3.0, 0.1, 1.57]
     id = "1"                      # optional
@@ -15,11 +16,24 @@ Scenario TOML (keys fixed):
     rect = [9.0, 1.6, 10.0, 3.0]  # xmin, ymin, xmax, ymax (m)
     during_goal = 7               # 1-based index of the goal during whose leg it appears (removed after the leg)
     appear_after_s = 5.0          # sim seconds after that goal is sent
+    [mapping]                     # optional: build the map first by jogging, then run the goals on it
+    route = [[4.0, 0.1, 0.0], [4.0, 0.1, 3.1]]  # waypoints [x, y, theta] jogged in order from `start` (world frame)
+    save_as = "corridor_built"    # optional map name (default "<name>_built"): letters, digits, '_', '-', '.'
+    jog_speed_mps = 0.2           # optional, > 0 and <= the robot's vx_max_mps and vy_max_mps (default: vx_max_mps)
 
 The stack runs headless on its own free ports. Each repeat starts with the robot teleported to ``start`` and the
 localization told so. A goal counts as reached when nav reports ``succeeded``; the error is the ground-truth pose
 0.5 s (sim) after that, minus the target, theta wrapped to (-pi, pi]. JSON:
 ``{"runs": [{"run": 1, "goals": [{"id", "target", "reached", "final", "error", "time_s"}]}]}``.
+
+With ``[mapping]`` (the paper's mapping workflow, services/cli/scenario_mapping.py) the stack starts in mapping mode
+(``zagv up --mapping``, SLAM's map frame and the simulated robot both at ``start``); the simulated operator jogs the
+route by ``cmd_vel`` while watching ``sim/ground_truth``, then the map is saved (``localization/save_map``), scored
+against the world's ground-truth map (occupied-cell F1), localization switches to AMCL on it (``localization/mode``)
+and, once nav's costmap follows the saved map, the goals run as above. The JSON gains ``"mapping": {"route_length_m",
+"driven_m", "jog_time_s", "jog_wall_s", "map_yaml", "map_f1": {"precision", "recall", "f1", ...}, "nav_map_wait_s",
+"late_jog_commands"}`` (jog commands sent more than the drive's 0.2 s command timeout after the previous one: the sim
+ran faster than the machine kept up with).
 """
 
 from __future__ import annotations
@@ -29,6 +43,7 @@ import asyncio
 import contextlib
 import json
 import math
+import re
 import sys
 import tempfile
 import time
@@ -69,6 +84,15 @@ class DynamicObstacle:
 
 
 @dataclass
+class Mapping:
+    """The ``[mapping]`` table: the jog route, the saved map's name and the jog speed."""
+
+    route: list[tuple[float, float, float]]
+    save_as: str
+    jog_speed_mps: float
+
+
+@dataclass
 class Scenario:
     goals: list[Goal]
     world: str | None = None
@@ -77,6 +101,8 @@ class Scenario:
     repeats: int = 1
     speed: float = 1.0
     dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
+    name: str = "scenario"
+    mapping: Mapping | None = None
 
 
 class ScenarioError(ValueError):
@@ -91,6 +117,37 @@ def _pose(v: Any, what: str) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+#: a map name localization/save_map accepts (no path; the same rule as the localization service's)
+MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+
+def _mapping(raw: Any, p: Path, name: str) -> Mapping:
+    from services.common.robot import RobotSpec
+
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{p}: mapping must be a table ([mapping]), got {raw!r}")
+    extra = sorted(set(raw) - {"route", "save_as", "jog_speed_mps"})
+    if extra:
+        raise ScenarioError(f"{p}: mapping: unknown key(s) {', '.join(extra)}; known: jog_speed_mps, route, save_as")
+    route_raw = raw.get("route")
+    if not isinstance(route_raw, list) or not route_raw:
+        raise ScenarioError(f"{p}: mapping.route must be a non-empty list of [x, y, theta] waypoints, got "
+                            f"{route_raw!r}")
+    route = [_pose(w, f"mapping.route[{k}]") for k, w in enumerate(route_raw, 1)]
+    default_name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:57].lstrip(".-") or "scenario"
+    save_as = raw.get("save_as", f"{default_name}_built")
+    if not isinstance(save_as, str) or not MAP_NAME.match(save_as):
+        raise ScenarioError(f"{p}: mapping.save_as {save_as!r} must be a map name of 1-64 letters, digits, '_', '-' "
+                            "or '.' (no path, not starting with '.' or '-')")
+    spec = RobotSpec()
+    limit = min(spec.vx_max_mps, spec.vy_max_mps)
+    speed = raw.get("jog_speed_mps", spec.vx_max_mps)
+    if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed <= limit:
+        raise ScenarioError(f"{p}: mapping.jog_speed_mps must be a number in (0, {limit:g}] (the robot's vx_max_mps "
+                            f"and vy_max_mps), got {speed!r}")
+    return Mapping(route, save_as, float(speed))
+
+
 def load_scenario(path: str | Path) -> Scenario:
     p = Path(path)
     try:
@@ -99,7 +156,8 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{p}: cannot read: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
-    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description"}
+    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description",
+             "mapping"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ScenarioError(f"{p}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
@@ -141,8 +199,12 @@ def load_scenario(path: str | Path) -> Scenario:
     speed = float(data.get("speed", 1.0))
     if repeats < 1 or not speed > 0:
         raise ScenarioError(f"{p}: repeats must be >= 1 and speed > 0")
+    name = data.get("name", p.stem)
+    if not isinstance(name, str) or not name:
+        raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
+    mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
     return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
-                    speed, obstacles)
+                    speed, obstacles, name, mapping)
 
 
 # --------------------------------------------------------------------------- results
@@ -226,6 +288,8 @@ class Client:
         self.map_odom: tuple[float, float, float] | None = None
         self.collisions = 0
         self.leg: Leg | None = None
+        self.jogging = False  # the mapping phase drives the robot (collisions count then too)
+        self.truth_changed = asyncio.Event()
         self.aborted = False
         self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
         self.localization_errors: list[tuple[float, float, float]] = []
@@ -272,13 +336,14 @@ class Client:
         self.sim_time = max(self.sim_time, msg.stamp)
 
     def _on_truth(self, msg: m.GroundTruth) -> None:
-        if msg.collided and not (self.truth and self.truth.collided) and self.leg is not None:
+        if msg.collided and not (self.truth and self.truth.collided) and (self.leg is not None or self.jogging):
             self.collisions += 1  # while driving a leg (the sim's own start pose may lie in a wall of a map)
         self.truth = msg
         self.sim_time = max(self.sim_time, msg.stamp)
         if self.leg is not None:
             p, v = msg.pose, msg.twist
             self.leg.trace.append((msg.stamp, p.x, p.y, p.theta, v.vx, v.vy, v.wz))
+        self.truth_changed.set()
 
     def _on_status(self, msg: m.NavStatus) -> None:
         self.status = msg
@@ -416,17 +481,30 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
 
 
 async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,  # noqa: ANN001
-                       progress=print) -> tuple[list[dict], list[Leg], int, list[bool]]:  # noqa: ANN001
+                       progress=print, truth_yaml: str | Path | None = None,  # noqa: ANN001
+                       ) -> tuple[list[dict], list[Leg], int, list[bool], Any]:
+    """Run the mapping phase (when the scenario has one; ``truth_yaml`` is the world's ground-truth map) and the
+    goals; returns (runs, plotted legs, collisions, detours per obstacle leg, MappingResult or None)."""
     loop = asyncio.get_running_loop()
     c = Client(session, keys, loop)
     legs: list[Leg] = []
     runs = []
+    mapping = None
     try:
         deadline = time.monotonic() + 30
         while c.truth is None or c.sim_time <= 0:
             if time.monotonic() > deadline:
                 raise RuntimeError("no sim/ground_truth within 30 s")
             await asyncio.sleep(0.05)
+        if sc.mapping is not None:
+            from services.cli.scenario_mapping import run_mapping
+            from services.common.robot import RobotSpec
+
+            if truth_yaml is None:
+                raise RuntimeError("the mapping phase needs the ground-truth map")
+            mp = sc.mapping
+            mapping = await run_mapping(c, sc.start, mp.route, mp.save_as, mp.jog_speed_mps, truth_yaml, RobotSpec(),
+                                        progress)
         for run in range(1, sc.repeats + 1):
             try:
                 await place_robot(c, sc.start)
@@ -449,7 +527,7 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
         runs.append({"run": len(runs) + 1, "goals": [
             {"id": g.id, "target": list(g.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
              "time_s": 0.0} for g in sc.goals]})
-    return runs, legs, c.collisions, c.detours
+    return runs, legs, c.collisions, c.detours, mapping
 
 
 def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> list[Path]:
@@ -544,7 +622,13 @@ def run(args: argparse.Namespace) -> int:
         sc.speed = args.speed
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-scenario-"))
     run_dir.mkdir(parents=True, exist_ok=True)
-    extra = ["--headless"] + [a for s in args.set for a in ("--set", s)]
+    extra = ["--headless"]
+    if sc.mapping is not None:  # SLAM's map frame starts where the simulated robot starts: at the scenario's start
+        x, y, th = sc.start
+        extra += ["--mapping", "--set", f"sim.start_pose=[{x!r}, {y!r}, {th!r}]",
+                  "--set", f"localization.initial_pose_x={x!r}", "--set", f"localization.initial_pose_y={y!r}",
+                  "--set", f"localization.initial_pose_yaw={th!r}"]
+    extra += [a for s in args.set for a in ("--set", s)]
     stack = Stack(run_dir, None, world=sc.world or "corridor", map_yaml=sc.map_yaml, speed=sc.speed,
                   extra_args=extra)
     print(f"zagv scenario: starting the simulated stack (log {run_dir / 'stack.log'})", flush=True)
@@ -552,23 +636,27 @@ def run(args: argparse.Namespace) -> int:
         stack.start(ready_timeout_s=120.0)
         session = stack.session()
 
-        async def main() -> tuple[list[dict], list[Leg], int, list[bool], m.OccupancyGrid | None]:
-            runs, legs, collisions, detours = await run_scenario(
+        truth_yaml = sc.map_yaml or str(run_dir / "world.yaml")  # zagv up renders the world there
+
+        async def main() -> tuple[list[dict], list[Leg], int, list[bool], Any, m.OccupancyGrid | None]:
+            runs, legs, collisions, detours, mapping = await run_scenario(
                 sc, session, stack.keys, goal_timeout_s=args.goal_timeout, plots=bool(args.plots),
-                progress=lambda s: print(s, flush=True))
+                progress=lambda s: print(s, flush=True), truth_yaml=truth_yaml)
             grid = None
             if args.plots:
                 with contextlib.suppress(QueryError):
                     grid = await query(session, stack.keys, "map", m.Empty(), timeout_s=5.0)
-            return runs, legs, collisions, detours, grid
+            return runs, legs, collisions, detours, mapping, grid
 
-        runs, legs, collisions, detours, grid = asyncio.run(main())
+        runs, legs, collisions, detours, mapping, grid = asyncio.run(main())
     except (AssertionError, RuntimeError, QueryError) as exc:
         print(f"zagv scenario: {exc}", file=sys.stderr)
         return 1
     finally:
         stack.stop()
     summary = summarize(runs)
+    if mapping is not None:
+        print(mapping.line())
     print(format_table(summary))
     total = sum(r["total"] for r in summary)
     reached = sum(r["reached"] for r in summary)
@@ -576,7 +664,10 @@ def run(args: argparse.Namespace) -> int:
     if detours:
         print(f"replanned around the dynamic obstacle in {sum(detours)}/{len(detours)} legs")
     if args.json:
-        Path(args.json).write_text(json.dumps({"runs": runs}, indent=2))
+        result: dict[str, Any] = {"runs": runs}
+        if mapping is not None:
+            result["mapping"] = mapping.to_json()
+        Path(args.json).write_text(json.dumps(result, indent=2))
     if args.plots:
         files = draw_plots(legs, grid, Path(args.plots))
         print(f"plots: {len(files)} files in {args.plots}")
