@@ -72,3 +72,20 @@ def test_check_config_exits_with_the_reason(tmp_path):
     with pytest.raises(SystemExit) as info:
         service_main("drive", {}, never, ["--config", str(cfg)])
     assert info.value.code == 2
+
+
+def test_set_reaches_nested_tables():
+    from services.common.service import load_config, parse_args
+    from services.nav.config import NavConfig
+
+    _, _, _, tables = load_config("nav", {"nav": NavConfig}, parse_args(
+        "nav", ["--set", "nav.dwa.vx_samples=7", "--set", "nav.global_costmap.update_frequency_hz=0.5",
+                "--set", "nav.planner_frequency_hz=2.0"]))
+    nav = tables["nav"]
+    assert nav.dwa.vx_samples == 7 and nav.global_costmap.update_frequency_hz == 0.5
+    assert nav.planner_frequency_hz == 2.0 and nav.dwa.vy_samples == 5  # the rest keeps its defaults
+    with pytest.raises(ConfigError, match="nav.planner_frequency_hz is a value"):
+        load_config("nav", {"nav": NavConfig}, parse_args("nav", ["--set", "nav.planner_frequency_hz=2.0", "--set",
+                                                                  "nav.planner_frequency_hz.x=1"]))
+    with pytest.raises(ConfigError, match="vx_sample"):
+        load_config("nav", {"nav": NavConfig}, parse_args("nav", ["--set", "nav.dwa.vx_sample=7"]))

@@ -55,7 +55,7 @@ def parse_args(name: str, argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--connect", action="append", help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--use-sim-time", action="store_true", default=None, help="follow the simulator's clock topic")
     p.add_argument("--check-config", action="store_true", help="validate the configuration and exit")
-    p.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE",
+    p.add_argument("--set", action="append", default=[], metavar="TABLE[.SUBTABLE].KEY=VALUE",
                    help="override one config value (TOML literal), e.g. --set lidar.port=2112")
     return p.parse_args(argv)
 
@@ -73,12 +73,17 @@ def load_config(
         if "=" not in item or "." not in item.split("=", 1)[0]:
             raise ConfigError(f"--set {item!r}: expected TABLE.KEY=VALUE")
         dotted, value = item.split("=", 1)
-        table, key = dotted.split(".", 1)
+        *tables, key = dotted.strip().split(".")  # nav.dwa.vx_samples: key vx_samples of [nav.dwa]
         try:
             parsed = tomllib.loads(f"v = {value}")["v"]
         except tomllib.TOMLDecodeError:
             parsed = value
-        data.setdefault(table, {})[key] = parsed
+        node = data
+        for i, table in enumerate(tables):
+            node = node.setdefault(table, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {'.'.join(tables[:i + 1])} is a value, not a table")
+        node[key] = parsed
     check_sections(data, source)
     robot = convert_section(data, "robot", RobotSpec, source)
     zenoh_settings = convert_section(data, "zenoh", ZenohSettings, source)
