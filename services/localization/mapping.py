@@ -43,7 +43,7 @@ from services.localization.map_io import MapError, OccupancyMap, load_map
 from services.localization.node import LocalizationNode, OdomHistory, Outputs
 from services.localization.slam.live import LiveMapper
 from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map
-from services.localization.slam.mapper import scan_to_points
+from services.localization.slam.mapper import SlamConfig, scan_to_points
 from services.localization.slam.occupancy import OccupancyGrid
 
 MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
@@ -70,7 +70,9 @@ class MappingNode:
         self.cfg = cfg
         self.out = outputs
         self.log = ctx.node.log
-        self.mapper = LiveMapper(start_pose=start_pose, min_travel_m=cfg.mapping_min_travel_m,
+        slam = SlamConfig(odom_prior_sigma_xy_m=cfg.mapping_odom_sigma_xy_m,
+                          odom_prior_sigma_theta_rad=cfg.mapping_odom_sigma_theta_rad)
+        self.mapper = LiveMapper(slam, start_pose=start_pose, min_travel_m=cfg.mapping_min_travel_m,
                                  min_turn_rad=cfg.mapping_min_turn_rad)
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
