@@ -71,7 +71,7 @@ async def test_query_reply_and_errors(client):
     server.queryable("drive/estop", boom)
     reply = await wait_for_reply(caller, "drive/enable")
     assert reply == Reply(ok=True, message="enabled")
-    reply = await caller.query("drive/estop")
+    reply = await caller.query("drive/estop", timeout_s=10.0)  # generous: a loaded machine delays the reply
     assert not reply.ok and "controller offline" in reply.message
     with pytest.raises(QueryError):
         await caller.query("drive/release", timeout_s=0.3)

@@ -166,7 +166,10 @@ class LikelihoodField:
         all_occupied = quads[0] & quads[1] & quads[2] & quads[3]
         surface = any_occupied & ~all_occupied  # (height + 1, width + 1) corners
         if surface.any():
-            dist_m = ndimage.distance_transform_edt(~surface) * grid.resolution
+            # less half a cell, as amcl's per-cell field effectively has: the next corners score as a hit half a
+            # cell off, which keeps the field as forgiving (and a recovering filter as able to find the robot)
+            dist_m = np.maximum(ndimage.distance_transform_edt(~surface) * grid.resolution - 0.5 * grid.resolution,
+                                0.0)
         else:
             dist_m = np.full(surface.shape, np.inf)
         self.max_dist = params.laser_likelihood_max_dist
