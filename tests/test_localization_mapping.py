@@ -23,23 +23,18 @@ import numpy as np
 import pytest
 
 from proto.messages import (
-    GroundTruth,
     InitialPoseRequest,
     ModeRequest,
-    Odometry,
     Pose2D,
-    PoseWithCovariance,
     SaveMapRequest,
-    TeleportRequest,
-    Transform2D,
     Twist2D,
 )
 from services.common.node import Node
-from services.localization.amcl import compose, wrap_angle
+from services.localization.amcl import wrap_angle
 from services.localization.map_io import FREE, OCCUPIED, load_map
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
-from services.localization.synthetic import route
 from tests.support.hmi import HmiClient, base_url, password_of
+from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
 
 EXPLORED = (-2.5, -2.0, 15.5, 5.5)  # x_min, y_min, x_max, y_max (m): the lobby and the main corridor to x = 15 m
@@ -113,47 +108,6 @@ def test_surface_keeps_the_visible_boundary_and_region_limits_recall():
 
 # ------------------------------------------------------------------------------------------------ simulator
 
-class Harness:
-    """Odometry from the ground truth (1 % scale error), teleport stepping, the SLAM pose error."""
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        self.pub_odom = node.publisher("odom")
-        self.odom = (0.0, 0.0, 0.0)
-        self.last_truth: tuple[float, float, float] | None = None
-        self.map_odom: Transform2D | None = None
-        self.pose: PoseWithCovariance | None = None
-        self.errors: list[float] = []
-        node.subscribe("sim/ground_truth", self.on_truth)
-        node.subscribe("tf/map_odom", self.on_tf)
-        node.subscribe("pose", lambda p: setattr(self, "pose", p))
-
-    def on_tf(self, tf: Transform2D) -> None:
-        self.map_odom = tf
-
-    def on_truth(self, gt: GroundTruth) -> None:
-        true = (gt.pose.x, gt.pose.y, gt.pose.theta)
-        if self.last_truth is not None:
-            x0, y0, t0 = self.last_truth
-            dx, dy = true[0] - x0, true[1] - y0
-            c, s = math.cos(t0), math.sin(t0)
-            body = (1.01 * (c * dx + s * dy), 1.01 * (-s * dx + c * dy), float(wrap_angle(true[2] - t0)) * 1.01)
-            self.odom = compose(self.odom, body)
-        self.last_truth = true
-        self.pub_odom.put(Odometry(stamp=gt.stamp, pose=Pose2D(x=self.odom[0], y=self.odom[1], theta=self.odom[2])))
-        if self.map_odom is not None:
-            tf = self.map_odom
-            est = compose((tf.x, tf.y, tf.theta), self.odom)
-            self.errors.append(math.hypot(est[0] - true[0], est[1] - true[1]))
-
-    async def drive(self, waypoints: list[tuple[float, float, float]]) -> None:
-        for x, y, th in route(waypoints, step_m=0.04, step_rad=0.04):
-            reply = await self.node.query("sim/teleport", TeleportRequest(pose=Pose2D(x=x, y=y, theta=th)),
-                                         timeout_s=10.0)  # generous: the shared machine may be loaded
-            assert reply.ok, reply.message
-            await asyncio.sleep(0.04)
-
-
 def service_stats(stack, service: str) -> dict:
     for reply in stack.session().get(stack.keys(f"@stats/{service}"), timeout=2.0):
         if reply.ok is not None:
@@ -181,7 +135,8 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
     stack = stack_factory(services=["sim", "lidar", "localization", "hmi_api"], world="corridor",
                           extra_args=["--mapping"]).start()
     node = Node("mapping-test", stack.session(), stack.keys)
-    h = Harness(node)
+    h = TruthOdometryHarness(node)
+    h.recording = True
     try:
         await wait_for(lambda: h.map_odom is not None, timeout_s=30, message="no tf/map_odom from mapping")
         refused = await node.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=1.0, y=0.0)))
@@ -189,7 +144,7 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         started = asyncio.get_running_loop().time()
         await h.drive(MAPPING_ROUTE[:6] + [(6.0, 3.2, 0.0)])  # the lobby and the corridor to x = 6 m
         drive_s = asyncio.get_running_loop().time() - started
-        errors = np.array(h.errors)
+        errors = h.take_errors()[:, 1]
         stats = service_stats(stack, "localization")["mapping"]
         assert stats["processed"] > 50 and stats["skipped"] > stats["processed"]  # the motion gates let few through
 
@@ -213,11 +168,11 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         assert not missing.ok
         switched = await node.query("localization/mode", ModeRequest(mode="navigation", map_yaml="corridor_built"))
         assert switched.ok, switched.message
-        h.errors.clear()
+        h.take_errors()
         h.map_odom = None
         await h.drive([(6.0, 3.2, 0.0), (6.0, 3.2, math.pi), (2.0, 3.2, math.pi)])
         assert h.map_odom is not None, "AMCL on the saved map published no tf/map_odom"
-        nav_errors = np.array(h.errors)
+        nav_errors = h.take_errors()[:, 1]
         print(f"AMCL on the built map: RMS {float(np.sqrt(np.mean(nav_errors ** 2))):.3f} m over 4 m")
         assert float(np.sqrt(np.mean(nav_errors ** 2))) < 0.1
         ok = await node.query("localization/initial_pose", InitialPoseRequest(pose=Pose2D(x=2.0, y=3.2,

@@ -14,81 +14,20 @@ import math
 import numpy as np
 import pytest
 
-from proto.messages import Empty, GroundTruth, Odometry, Pose2D, TeleportRequest, Transform2D, Twist2D
+from proto.messages import Empty, GroundTruth, Odometry, Twist2D
 from services.common.node import Node
 from services.localization.amcl import compose, wrap_angle
-from services.localization.synthetic import TABLE3_ROUTE, route
+from services.localization.synthetic import TABLE3_ROUTE
+from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
-STEP_M, STEP_RAD, STEP_S = 0.04, 0.04, 0.04
-
-
-class Harness:
-    """Odometry from the ground truth, teleport stepping, and the error log."""
-
-    def __init__(self, node: Node) -> None:
-        self.node = node
-        self.pub_odom = node.publisher("odom")
-        self.odom = (0.0, 0.0, 0.0)
-        self.last_truth: tuple[float, float, float] | None = None
-        self.map_odom: Transform2D | None = None
-        self.errors: list[tuple[float, float, float]] = []  # (travelled m, xy error m, |theta error| rad)
-        self.travelled = 0.0
-        self.recording = False
-        node.subscribe("sim/ground_truth", self.on_truth)
-        node.subscribe("tf/map_odom", self.on_tf)
-
-    def on_tf(self, tf: Transform2D) -> None:
-        self.map_odom = tf
-
-    def on_truth(self, gt: GroundTruth) -> None:
-        true = (gt.pose.x, gt.pose.y, gt.pose.theta)
-        if self.last_truth is not None:
-            x0, y0, t0 = self.last_truth
-            dx, dy = true[0] - x0, true[1] - y0
-            if math.hypot(dx, dy) < 1.0:  # a larger jump is a kidnapping: the wheels did not turn
-                c, s = math.cos(t0), math.sin(t0)
-                body = (1.01 * (c * dx + s * dy), 1.01 * (-s * dx + c * dy), float(wrap_angle(true[2] - t0)) * 1.01)
-                self.odom = compose(self.odom, body)
-                self.travelled += math.hypot(dx, dy)
-        self.last_truth = true
-        self.pub_odom.put(Odometry(stamp=gt.stamp, pose=Pose2D(x=self.odom[0], y=self.odom[1], theta=self.odom[2])))
-        if self.recording and self.map_odom is not None:
-            tf = self.map_odom
-            est = compose((tf.x, tf.y, tf.theta), self.odom)
-            self.errors.append((self.travelled, math.hypot(est[0] - true[0], est[1] - true[1]),
-                                abs(float(wrap_angle(est[2] - true[2])))))
-
-    async def teleport(self, pose: tuple[float, float, float]) -> None:
-        reply = await self.node.query("sim/teleport", TeleportRequest(pose=Pose2D(x=pose[0], y=pose[1],
-                                                                                   theta=pose[2])))
-        assert reply.ok, reply.message
-
-    async def drive(self, waypoints: list[tuple[float, float, float]]) -> None:
-        for pose in route(waypoints, step_m=STEP_M, step_rad=STEP_RAD):
-            await self.teleport(pose)
-            await asyncio.sleep(STEP_S)
-
-    @staticmethod
-    def settled_after_m(errors: np.ndarray, threshold_m: float = 0.2) -> float | None:
-        """Travel from the first sample after which the error stays below ``threshold_m`` (None: never)."""
-        bad = np.nonzero(errors[:, 1] >= threshold_m)[0]
-        if bad.size == 0:
-            return 0.0
-        if bad[-1] + 1 >= len(errors):
-            return None
-        return float(errors[bad[-1] + 1, 0] - errors[0, 0])
-
-    def take_errors(self) -> np.ndarray:
-        errors, self.errors = np.array(self.errors), []
-        return errors
 
 
 async def test_amcl_in_the_simulated_corridor(stack_factory):
     stack = stack_factory(services=["sim", "lidar", "localization"], world="corridor").start()
     node = Node("loc-test", stack.session(), stack.keys)
-    h = Harness(node)
+    h = TruthOdometryHarness(node)
     try:
         await wait_for(lambda: h.map_odom is not None, timeout_s=30, message="no tf/map_odom from localization")
         # 1. tracking along the Table 3 route (start, goals 1 to 4)
@@ -110,7 +49,7 @@ async def test_amcl_in_the_simulated_corridor(stack_factory):
         settled = h.settled_after_m(errors)
         print(f"global localization: error < 0.2 m after {settled} m of travel; final {errors[-1, 1]:.3f} m "
               f"after {errors[-1, 0] - errors[0, 0]:.1f} m")
-        assert settled is not None and settled <= 5.0
+        assert settled is not None and settled <= 5.0, h.describe()
 
         # 3. kidnapping: from the north corridor 5 m back into the hall, unseen by odometry; then 10 m of travel
         await h.drive([(23.8, 8.5, 1.57), (23.5, 12.5, 1.57)])
@@ -122,7 +61,7 @@ async def test_amcl_in_the_simulated_corridor(stack_factory):
         settled = h.settled_after_m(errors)
         print(f"kidnapped 5 m: error < 0.2 m after {settled} m of travel; final {errors[-1, 1]:.3f} m")
         assert errors[-1, 0] - errors[0, 0] >= 9.5
-        assert settled is not None and settled <= 10.0
+        assert settled is not None and settled <= 10.0, h.describe()
     finally:
         node.close()
 
