@@ -86,7 +86,7 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     global_localization_cooling: float = 0.85
     #: roughening while annealing: each resampled particle moves by N(0, sqrt(temperature) * jitter), so that a few
     #: particles near the true pose but slightly off explore their basin instead of losing to a larger cluster
-    #: elsewhere that happens to hold a better-aligned member (without it, 1 start in 150 at goal 4 settled on the
+    #: elsewhere that happens to hold a better-aligned member (without it, 1 start in 300 at goal 4 settled on the
     #: hall seen rotated by 90 deg)
     global_localization_jitter_xy_m: float = 0.05
     global_localization_jitter_theta_rad: float = 0.02
