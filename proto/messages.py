@@ -11,6 +11,7 @@ Conventions:
 
 from __future__ import annotations
 
+import re
 from typing import ClassVar, Literal
 
 import msgspec
@@ -303,6 +304,11 @@ class InitialPoseRequest(Message):
 
     pose: Pose2D
     covariance: list[float] = msgspec.field(default_factory=list)
+
+
+#: a map name ``localization/save_map`` accepts: 1-64 letters, digits, '_', '-' or '.', no path, not starting with
+#: '.' or '-'
+MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
 
 class SaveMapRequest(Message):

@@ -117,10 +117,6 @@ def _pose(v: Any, what: str) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
-#: a map name localization/save_map accepts (no path; the same rule as the localization service's)
-MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
-
-
 def _mapping(raw: Any, p: Path, name: str) -> Mapping:
     from services.common.robot import RobotSpec
 
@@ -136,7 +132,7 @@ def _mapping(raw: Any, p: Path, name: str) -> Mapping:
     route = [_pose(w, f"mapping.route[{k}]") for k, w in enumerate(route_raw, 1)]
     default_name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:57].lstrip(".-") or "scenario"
     save_as = raw.get("save_as", f"{default_name}_built")
-    if not isinstance(save_as, str) or not MAP_NAME.match(save_as):
+    if not isinstance(save_as, str) or not m.MAP_NAME.match(save_as):
         raise ScenarioError(f"{p}: mapping.save_as {save_as!r} must be a map name of 1-64 letters, digits, '_', '-' "
                             "or '.' (no path, not starting with '.' or '-')")
     spec = RobotSpec()

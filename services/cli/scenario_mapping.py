@@ -26,6 +26,7 @@ import numpy as np
 
 from proto import codec
 from proto import messages as m
+from services.cli.scenario import wrap
 from services.common.robot import RobotSpec
 
 if TYPE_CHECKING:
@@ -41,10 +42,6 @@ CLEARANCE_MARGIN_M = 0.1  # route clearance beyond the chassis radius (the jog i
 COMMAND_PERIOD_S = 0.05  # sim s between cmd_vel messages (drive stops after its cmd_timeout_s, 0.2 s)
 LATE_COMMAND_S = 0.2  # the drive's default cmd_timeout_s: a command later than this found the robot stopping
 TRUTH_TIMEOUT_S = 10.0  # wall s without ground truth before the jog gives up (the sim died)
-
-
-def _wrap(a: float) -> float:
-    return -((-a + math.pi) % (2 * math.pi) - math.pi)
 
 
 # --------------------------------------------------------------------------- the operator (pure)
@@ -70,12 +67,12 @@ def jog_command(pose: Pose, target: Pose, spec: RobotSpec, speed_mps: float, *, 
         scale = min(1.0, limit_x / abs(vx) if abs(vx) > 1e-12 else 1.0,
                     spec.vy_max_mps / abs(vy) if abs(vy) > 1e-12 else 1.0)
         vx, vy = vx * scale, vy * scale
-    wz = kp_yaw * _wrap(target[2] - pose[2])
+    wz = kp_yaw * wrap(target[2] - pose[2])
     return spec.clamp_twist(vx, vy, wz)
 
 
 def arrived(pose: Pose, target: Pose, xy_m: float = WAYPOINT_XY_M, yaw_rad: float = WAYPOINT_YAW_RAD) -> bool:
-    return math.hypot(target[0] - pose[0], target[1] - pose[1]) < xy_m and abs(_wrap(target[2] - pose[2])) < yaw_rad
+    return math.hypot(target[0] - pose[0], target[1] - pose[1]) < xy_m and abs(wrap(target[2] - pose[2])) < yaw_rad
 
 
 def route_length_m(start: Pose, route: list[Pose]) -> float:
@@ -204,7 +201,7 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
         for k, target in enumerate(route, 1):
             p = c.truth.pose
             need_s = math.hypot(target[0] - p.x, target[1] - p.y) / speed_mps \
-                + abs(_wrap(target[2] - p.theta)) / spec.wz_max_radps
+                + abs(wrap(target[2] - p.theta)) / spec.wz_max_radps
             deadline = c.sim_time + 3.0 * need_s + 30.0
             while True:
                 c.truth_changed.clear()

@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import re
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,6 +27,7 @@ import numpy as np
 
 from proto import array
 from proto.messages import (
+    MAP_NAME,
     LaserScan,
     ModeRequest,
     Odometry,
@@ -46,7 +46,6 @@ from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, w
 from services.localization.slam.mapper import SlamConfig, scan_to_points
 from services.localization.slam.occupancy import OccupancyGrid
 
-MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 #: covariance reported with SLAM poses (x, y: (2 cm)^2; theta: (1°)^2)
 SLAM_COVARIANCE = [4e-4, 0.0, 0.0, 0.0, 4e-4, 0.0, 0.0, 0.0, 3e-4]
 

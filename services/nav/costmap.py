@@ -150,6 +150,16 @@ class Costmap2D:
 
 # --------------------------------------------------------------------------- layers
 
+#: a window of the master grid in cells: rows i0..i1, columns j0..j1 (i1, j1 exclusive)
+CellBounds = tuple[int, int, int, int]
+
+
+def whole(master: Costmap2D) -> CellBounds:
+    """The bounds that cover all of ``master``."""
+    h, w = master.cost.shape
+    return (0, 0, h, w)
+
+
 
 class StaticLayer:
     """Cells of an occupancy grid (int8: -1 unknown, 0..100): >= ``lethal_threshold`` lethal, -1 no information
@@ -169,18 +179,21 @@ class StaticLayer:
             cost[occ < 0] = NO_INFORMATION
         self.grid = Costmap2D(resolution, origin_x, origin_y, cost)
 
-    def update(self, master: Costmap2D) -> None:
+    def update(self, master: Costmap2D, bounds: CellBounds | None = None) -> None:
+        """Write the map into ``master`` within ``bounds`` (None: the whole grid)."""
+        i0, j0, i1, j1 = whole(master) if bounds is None else bounds
+        target = master.cost[i0:i1, j0:j1]
         if self.grid is None:
-            master.cost[:] = NO_INFORMATION if self.track_unknown else FREE
+            target[:] = NO_INFORMATION if self.track_unknown else FREE
             return
         g = self.grid
         if (g.resolution == master.resolution and g.origin_x == master.origin_x and g.origin_y == master.origin_y
                 and g.cost.shape == master.cost.shape):
-            np.copyto(master.cost, g.cost)
+            np.copyto(target, g.cost[i0:i1, j0:j1])
             return
-        ii, jj = np.indices(master.cost.shape)
-        x, y = master.map_to_world(ii, jj)
-        master.cost[:] = g.cost_at(x, y, outside=NO_INFORMATION if self.track_unknown else FREE)
+        ii, jj = np.indices(target.shape)
+        x, y = master.map_to_world(ii + i0, jj + j0)
+        target[:] = g.cost_at(x, y, outside=NO_INFORMATION if self.track_unknown else FREE)
 
 
 @dataclass
@@ -282,10 +295,13 @@ class ObstacleLayer:
         inside = footprint.contains(local).reshape(ii.shape)
         self.grid[ii[inside], jj[inside]] = FREE
 
-    def update(self, master: Costmap2D) -> None:
+    def update(self, master: Costmap2D, bounds: CellBounds | None = None) -> None:
+        """Marks raise ``master`` (max) within ``bounds``; unknown cells stay unknown unless marked."""
         self._ensure(master)
         assert self.grid is not None
-        np.maximum(master.cost, self.grid, out=master.cost, where=(master.cost != NO_INFORMATION) | (self.grid > 0))
+        i0, j0, i1, j1 = whole(master) if bounds is None else bounds
+        target, marks = master.cost[i0:i1, j0:j1], self.grid[i0:i1, j0:j1]
+        np.maximum(target, marks, out=target, where=(target != NO_INFORMATION) | (marks > 0))
 
 
 def _shift(grid: np.ndarray, di: int, dj: int, fill: int = FREE) -> np.ndarray:
@@ -329,12 +345,10 @@ class InflationLayer:
         out[d <= 0.0] = LETHAL
         return out
 
-    def update(self, master: Costmap2D, bounds: tuple[int, int, int, int] | None = None) -> None:
-        """Inflate ``master`` in place within ``bounds`` (i0, j0, i1, j1 exclusive; None: the whole grid)."""
+    def update(self, master: Costmap2D, bounds: CellBounds | None = None) -> None:
+        """Inflate ``master`` in place within ``bounds`` (None: the whole grid)."""
         h, w = master.cost.shape
-        if bounds is None:
-            bounds = (0, 0, h, w)
-        i0, j0, i1, j1 = bounds
+        i0, j0, i1, j1 = whole(master) if bounds is None else bounds
         pad = int(math.ceil(self.inflation_radius_m / master.resolution)) + 1
         wi0, wj0, wi1, wj1 = max(i0 - pad, 0), max(j0 - pad, 0), min(i1 + pad, h), min(j1 + pad, w)
         window = master.cost[wi0:wi1, wj0:wj1]
@@ -370,11 +384,12 @@ class LayeredCostmap:
         self.inflation = inflation
         self.footprint = footprint
 
-    def update(self) -> None:
-        self.static.update(self.master)
+    def update(self, bounds: CellBounds | None = None) -> None:
+        """Rebuild the master grid within ``bounds`` (None: all of it), layer by layer."""
+        self.static.update(self.master, bounds)
         if self.obstacles is not None:
-            self.obstacles.update(self.master)
-        self.inflation.update(self.master)
+            self.obstacles.update(self.master, bounds)
+        self.inflation.update(self.master, bounds)
 
     def add_scan(self, obs: ScanObservation) -> None:
         if self.obstacles is not None:
@@ -432,7 +447,11 @@ class GlobalCostmap(LayeredCostmap):
         super().clear_obstacles()
         self._full = True
 
-    def update(self) -> None:
+    def update(self, bounds: CellBounds | None = None) -> None:
+        """Recompute what changed since the last update (``bounds``: exactly that window instead)."""
+        if bounds is not None:
+            super().update(bounds)
+            return
         m = self.master
         static = self.static.grid
         same_geometry = (static is not None and static.cost.shape == m.cost.shape
@@ -452,14 +471,8 @@ class GlobalCostmap(LayeredCostmap):
         i1, j1 = m.world_to_map(x1, y1)
         i0, j0 = max(int(i0) - pad, 0), max(int(j0) - pad, 0)
         i1, j1 = min(int(i1) + pad + 1, m.height), min(int(j1) + pad + 1, m.width)
-        if i1 <= i0 or j1 <= j0:
-            return
-        window = m.cost[i0:i1, j0:j1]
-        np.copyto(window, static.cost[i0:i1, j0:j1])
-        if self.obstacles is not None:
-            marks = self.obstacles.grid[i0:i1, j0:j1]
-            np.maximum(window, marks, out=window, where=(window != NO_INFORMATION) | (marks > 0))
-        self.inflation.update(m, (i0, j0, i1, j1))
+        if i1 > i0 and j1 > j0:
+            super().update((i0, j0, i1, j1))
 
 
 class RollingCostmap(LayeredCostmap):
