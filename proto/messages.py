@@ -54,13 +54,25 @@ class Transform2D(Message):
     theta: float = 0.0
 
 
+LocalizationState = Literal["localizing", "tracking", "lost"]
+
+
 class PoseWithCovariance(Message):
-    """Pose in ``frame`` with its 3x3 covariance over (x [m], y [m], theta [rad]), row-major."""
+    """Pose in ``frame`` with its 3x3 covariance over (x [m], y [m], theta [rad]), row-major.
+
+    ``state`` is the filter's own verdict: ``localizing`` until it has converged (at start, after a global
+    relocalization), ``tracking`` while the scans fit the map, ``lost`` once they stop fitting. ``match_score`` is the
+    fraction of scan beams that the map explains (0..1) and ``spread_m`` the particle cloud's position spread; both are
+    the inputs of that verdict. Consumers must not act on a pose whose state is not ``tracking``.
+    """
 
     stamp: float = 0.0
     frame: str = "map"
     pose: Pose2D = msgspec.field(default_factory=Pose2D)
     covariance: list[float] = msgspec.field(default_factory=lambda: [0.0] * 9)
+    state: LocalizationState = "tracking"
+    match_score: float = 1.0
+    spread_m: float = 0.0
 
 
 class PoseArray(Message):
