@@ -4,7 +4,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test lint bench schema clean
+.PHONY: install run test test-long lint bench schema clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,9 @@ test: install
 	$(BIN)/ruff check .
 	$(BIN)/python -m proto.schema --check
 	$(BIN)/python -m pytest -q -rs
+
+test-long: install
+	$(BIN)/python -m pytest -q -rs -m long
 
 lint: install
 	$(BIN)/ruff check .
