@@ -20,6 +20,7 @@ run: install
 test: install
 	$(BIN)/ruff check .
 	$(BIN)/python -m proto.schema --check
+	$(BIN)/python -m proto.keytable --check
 	$(BIN)/python -m pytest -q -rs
 
 test-long: install
