@@ -1,4 +1,4 @@
-"""One codec for every key: msgpack through msgspec, the key naming the type (DESIGN §6).
+"""One codec for every key: msgpack through msgspec, the key naming the type (docs/architecture.md).
 
 >>> payload = encode(Twist2D(vx=0.1))
 >>> decode("cmd_vel", payload).vx

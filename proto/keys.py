@@ -1,4 +1,4 @@
-"""Key expressions: every key lives under ``agv/<robot_id>/`` (DESIGN §5)."""
+"""Key expressions: every key lives under ``agv/<robot_id>/`` (docs/architecture.md)."""
 
 from __future__ import annotations
 

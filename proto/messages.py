@@ -1,4 +1,4 @@
-"""Message types that cross a process boundary (DESIGN §5, §6).
+"""Message types that cross a process boundary (docs/architecture.md).
 
 Conventions:
 - SI units everywhere: metres (m), radians (rad), seconds (s), m/s, rad/s, amperes (A).

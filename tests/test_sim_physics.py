@@ -103,7 +103,7 @@ def test_least_squares_twist_from_wheel_vectors() -> None:
         vx, vy, wz = twist
         wheels = []
         for x, y in MODULES:
-            wheels += [vx - wz * y, vy + wz * x]  # DESIGN §2 inverse kinematics
+            wheels += [vx - wz * y, vy + wz * x]  # inverse kinematics (docs/architecture.md)
         assert p @ np.array(wheels) == pytest.approx(np.array(twist), abs=1e-12)
 
 

@@ -1,4 +1,4 @@
-"""TOML configuration decoded into msgspec Structs; an unknown or mistyped key fails naming it (DESIGN §9).
+"""TOML configuration decoded into msgspec Structs; an unknown or mistyped key fails naming it (docs/architecture.md).
 
 A robot file has one table per concern: ``[robot]`` (geometry and Table 2 limits), ``[zenoh]``, and one table per
 service (``[drive]``, ``[lidar]``, ``[localization]``, ``[nav]``, ``[hmi_api]``, ``[sim]``). Each service validates

@@ -1,4 +1,4 @@
-"""The robot's shared facts: chassis geometry and the paper's Table 2 limits (DESIGN §1)."""
+"""The robot's shared facts: chassis geometry and the paper's Table 2 limits (docs/architecture.md, The robot)."""
 
 from __future__ import annotations
 

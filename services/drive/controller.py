@@ -1,6 +1,6 @@
 """The drive's control law and odometry, I/O-free: twist in, motor commands out; encoder feedback in, pose out.
 
-Command path (one call per control cycle, DESIGN §7):
+Command path (one call per control cycle):
     target twist -> velocity box (non-finite -> 0) -> acceleration limits -> inverse kinematics
     -> desaturation to the wheel-speed limit -> per module: hold the angle when stopped, optimise within the
     steering limits -> cosine scaling by the measured steering error -> motor units (rpm, counts).

@@ -1,4 +1,4 @@
-"""Swerve kinematics as pure, immutable values (DESIGN §2; WPILib's SwerveDriveKinematics is the model).
+"""Swerve kinematics as pure, immutable values (docs/architecture.md; WPILib's SwerveDriveKinematics is the model).
 
 Module i sits at (x_i, y_i) in base_link. For a body twist (vx, vy, wz):
 

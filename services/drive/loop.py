@@ -1,6 +1,6 @@
 """The fixed-rate control loop on its own thread: commands out every cycle, feedback into odometry, faults.
 
-Each cycle (DESIGN §7): latest ``cmd_vel`` (zero after ``cmd_timeout_s``, reached through the acceleration limits,
+Each cycle: latest ``cmd_vel`` (zero after ``cmd_timeout_s``, reached through the acceleration limits,
 i.e. a controlled deceleration) -> limits -> IK -> optimisation -> RPDO to every controller (this also feeds their
 command watchdogs); TPDO feedback -> FK -> odometry. A lost link (heartbeat, bus error, silent feedback), a fault
 flag, disable or e-stop make the cycle command zero speed; a reconnect thread reopens the link with exponential

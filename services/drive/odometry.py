@@ -1,4 +1,4 @@
-"""Exact SE(2) dead reckoning: integrate a body twist held constant over each step (DESIGN §2).
+"""Exact SE(2) dead reckoning: integrate a body twist held constant over each step (docs/architecture.md, Kinematics).
 
 For a body displacement (dx, dy, dtheta) over one step (twist * dt), the pose moves along the arc
 

@@ -1,6 +1,6 @@
 """Swerve robot physics: motors under closed-loop control, wheel kinematics, rigid-body motion on SE(2).
 
-Pure, synchronous and I/O-free. Units (paper eq. 7 and 8, DESIGN §2):
+Pure, synchronous and I/O-free. Units (paper eq. 7 and 8, docs/architecture.md):
 
 - traction: wheel rim speed ``v = rpm * 2*pi*R / (J * 60)`` (R wheel radius m, J gear ratio, rpm motor shaft);
   the traction encoder counts ``traction_cpr`` counts per motor revolution.
@@ -166,7 +166,7 @@ class SwerveModule:
 def lsq_twist_matrix(modules: list[tuple[float, float]]) -> np.ndarray:
     """The 3 x 2n pseudo-inverse mapping stacked wheel velocities (vx_i, vy_i) to the body twist (vx, vy, wz).
 
-    Rows of B per wheel: [1 0 -y_i; 0 1 x_i] (DESIGN §2); twist = pinv(B) @ A.
+    Rows of B per wheel: [1 0 -y_i; 0 1 x_i] (docs/architecture.md, Kinematics); twist = pinv(B) @ A.
     """
     b = np.zeros((2 * len(modules), 3))
     for i, (x, y) in enumerate(modules):
