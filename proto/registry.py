@@ -1,4 +1,4 @@
-"""Which message type travels on which key (docs/architecture.md has the table) and what each query takes and returns."""
+"""Which message type travels on which key (docs/architecture.md has the table) and what a query takes and returns."""
 
 from __future__ import annotations
 
