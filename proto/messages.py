@@ -336,6 +336,12 @@ class ModeRequest(Message):
     map_yaml: str = ""
 
 
+class BlackBoxSaveRequest(Message):
+    """Save the black box (the rolling recording of the last minutes) now; ``reason`` names the bag."""
+
+    reason: str = "on-demand"
+
+
 class ObstacleRequest(Message):
     """Add (or remove, by id) a rectangular obstacle [xmin, ymin, xmax, ymax] (m) in the sim world."""
 

@@ -40,6 +40,7 @@ QUERIES: dict[str, tuple[type[m.Message], type[m.Message]]] = {
     "localization/save_map": (m.SaveMapRequest, m.Reply),
     "localization/mode": (m.ModeRequest, m.Reply),
     "map": (m.Empty, m.OccupancyGrid),
+    "recorder/save": (m.BlackBoxSaveRequest, m.Reply),
     "sim/obstacles": (m.ObstacleRequest, m.ObstacleReply),
     "sim/teleport": (m.TeleportRequest, m.Reply),
 }

@@ -11,7 +11,8 @@ import signal
 import sys
 import threading
 
-COMMANDS = ["up", "router", "status", "topic", "bench", "map", "goal", "scenario", "install_units"]
+COMMANDS = ["up", "router", "status", "topic", "bench", "map", "goal", "scenario", "install_units", "record",
+            "replay", "blackbox"]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -29,7 +29,7 @@ from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
-SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "localization", "nav", "recorder", "foxglove_bridge", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -58,6 +58,8 @@ class StackPlan:
     only: list[str] | None = None
     #: a router to use instead of the embedded one (e.g. ``tcp/127.0.0.1:7447`` of ``zagv router`` or zenohd)
     external_router: str | None = None
+    #: Foxglove WebSocket port of the foxglove_bridge service (0: the bridge is not started)
+    foxglove_port: int = 0
 
     @property
     def endpoint(self) -> str:
@@ -73,6 +75,8 @@ class StackPlan:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
+        if not self.foxglove_port:
+            names = [s for s in names if s != "foxglove_bridge"]
         if self.only is not None:
             names = [s for s in names if s in self.only]
         return names
@@ -104,6 +108,10 @@ class StackPlan:
             sets += [f"localization.state_dir={_toml_str(self.run_dir)}"]
             if self.mapping:
                 sets += ["localization.mode=\"mapping\""]
+        elif name == "recorder":
+            sets += [f"recorder.state_dir={_toml_str(self.run_dir)}"]
+        elif name == "foxglove_bridge":
+            sets += [f"foxglove.port={self.foxglove_port}"]
         elif name == "hmi_api":
             sets += [f"hmi_api.port={self.http_port}", f"hmi_api.state_dir={_toml_str(self.run_dir)}"]
         prefix = f"{name}."
@@ -246,6 +254,8 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
                    help="config override passed to the service it names")
     p.add_argument("--only", help="comma-separated subset of services to start")
+    p.add_argument("--foxglove-port", type=int, default=0,
+                   help="serve Foxglove (WebSocket, 127.0.0.1) on this port (default: no Foxglove bridge)")
 
 
 def plan_from_args(args: argparse.Namespace) -> StackPlan:
@@ -256,7 +266,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         speed=args.speed, headless=args.headless, mapping=args.mapping, zenoh_port=args.zenoh_port,
         can_port=args.can_port, lidar_port=args.lidar_port, http_port=args.http_port, run_dir=run_dir,
         extra_sets=args.set, only=args.only.split(",") if args.only else None,
-        external_router=getattr(args, "external_router", None),
+        external_router=getattr(args, "external_router", None), foxglove_port=getattr(args, "foxglove_port", 0),
     )
 
 

@@ -1,6 +1,6 @@
 """Writing zagv messages as rosbag2 folders with MCAP storage (``rosbags``), split by size or duration.
 
-A recording is a folder of bags: ``<out>/<name>/`` when it fits in one, else ``<out>/<name>_0000/``,
+A recording is the bag folder ``<out>/`` itself, or when split, a folder of bags ``<out>/<name>_0000/``,
 ``<out>/<name>_0001/``, ... Each bag is a standard rosbag2 folder (``metadata.yaml`` + one ``.mcap``) that ROS 2
 tools, Foxglove, ``rosbags`` and the ``mcap`` readers open on their own. Message log times are nanoseconds on the
 robot's clock (sim time when the simulator runs). ``metadata.yaml`` custom data holds the robot id and the JSON
@@ -72,7 +72,7 @@ class BagRecorder:
 
     # ------------------------------------------------------------------ bags
     def _bag_path(self, index: int) -> Path:
-        return self.out.with_name(f"{self.out.name}_{index:04d}")
+        return self.out / f"{self.out.name}_{index:04d}"
 
     def _open(self, log_time_ns: int) -> Writer:
         if self.split_bytes or self.split_duration_ns:
