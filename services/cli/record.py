@@ -73,9 +73,14 @@ def run_record(args: argparse.Namespace) -> int:
     def on_sample(sample: zenoh.Sample) -> None:
         samples.put((str(sample.key_expr), sample.payload.to_bytes()))
 
+    try:
+        recorder = BagRecorder(out, robot_id=keys.robot_id, split_bytes=int(args.split_size_mb * 1e6),
+                               split_duration_s=args.split_duration)
+    except FileExistsError as exc:
+        print(f"zagv record: {exc}", file=sys.stderr)
+        return 2
     session = client_session(args)
     subs = []
-    recorder = None
     try:
         if names is None:
             subs.append(session.declare_subscriber(keys.everything, on_sample))
@@ -83,8 +88,6 @@ def run_record(args: argparse.Namespace) -> int:
             subs += [session.declare_subscriber(keys(n), on_sample) for n in dict.fromkeys([*names, "clock"])]
         if names is None or "map" in names:
             session.get(keys("map"), lambda r: r.ok is not None and on_sample(r.ok), timeout=2.0)
-        recorder = BagRecorder(out, robot_id=keys.robot_id, split_bytes=int(args.split_size_mb * 1e6),
-                               split_duration_s=args.split_duration)
         clock = LogClock()
         bad: dict[str, int] = {}
         next_line = time.monotonic() + 1.0
@@ -119,10 +122,9 @@ def run_record(args: argparse.Namespace) -> int:
         for s in subs:
             s.undeclare()
         session.close()
-        if recorder is not None:
-            bags = recorder.close()
-            print(f"\rzagv record: {recorder.stats.line()}")
-            for bag in bags:
-                print(f"zagv record: wrote {bag}")
+        bags = recorder.close()
+        print(f"\rzagv record: {recorder.stats.line()}")
+        for bag in bags:
+            print(f"zagv record: wrote {bag}")
     return 0
 

@@ -34,7 +34,10 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def service_available(name: str) -> bool:
-    return importlib.util.find_spec(f"services.{name}.__main__") is not None
+    try:
+        return importlib.util.find_spec(f"services.{name}.__main__") is not None
+    except ModuleNotFoundError:  # no such package in this build
+        return False
 
 
 @dataclass

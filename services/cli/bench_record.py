@@ -1,0 +1,197 @@
+"""Recording and replay on the corridor Table 3 run: the harness of the record/replay tests and their bench rows.
+
+``record_corridor`` starts the simulated stack (AMCL seeded), runs ``zagv record`` as its own process while the
+scenario runner drives the Table 3 goals once, and keeps every scan, odom and map->odom payload that was published
+(so a test can compare the bag with them). ``replay_into_localization`` starts localization alone (no sim, no
+drive, on the replayed clock) and plays the bag's ``scan`` and ``odom`` into it with ``zagv replay``, collecting the
+poses it publishes.
+
+Rows: ``record.mb_per_min`` (bag MB per minute of robot time), ``record.cpu_cores`` (CPU of the ``zagv record``
+process per second of robot time, i.e. cores at 1x), ``replay.speed_factor`` (bag seconds per wall second of
+``zagv replay --rate 0`` with nothing listening).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from proto import codec
+from proto import messages as m
+from services.cli.stack_process import REPO_ROOT, Stack
+from services.common.bench import BenchRow
+
+SCENARIO = REPO_ROOT / "scenarios" / "corridor_table3.toml"
+RECORDED = ("scan", "odom", "tf/map_odom", "pose")
+AMCL_SEED = 7
+
+
+@dataclass
+class CorridorRecording:
+    bag: Path
+    published: dict[str, list[bytes]] = field(default_factory=dict)
+    sim_s: float = 0.0
+    record_cpu_s: float = 0.0
+    goals_reached: int = 0
+    goals: int = 0
+    world_yaml: Path | None = None
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1", "ZAGV_PARENT_PID": str(os.getpid())}
+
+
+def _children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3.0,
+                    extra_args: list[str] | None = None) -> CorridorRecording:
+    """Drive the first ``goals`` Table 3 goals (all when None) once while ``zagv record`` records everything."""
+    from services.cli.scenario import load_scenario
+
+    sc = load_scenario(SCENARIO)
+    sc.repeats = 1
+    if goals is not None:
+        sc.goals = sc.goals[:goals]
+        sc.dynamic_obstacles = [o for o in sc.dynamic_obstacles if o.during_goal <= goals]
+    bag = run_dir / "corridor_bag"
+    published: dict[str, list[bytes]] = {k: [] for k in RECORDED}
+    lock = threading.Lock()
+    args = ["--set", f"localization.random_seed={AMCL_SEED}", *(extra_args or [])]
+    stack = Stack(run_dir / "stack", ["sim", "drive", "lidar", "localization", "nav"], speed=speed,
+                  extra_args=args)
+    (run_dir / "stack").mkdir(parents=True, exist_ok=True)
+    with stack:
+        session = stack.session()
+
+        def keep(name: str):  # noqa: ANN202
+            def on_sample(sample: zenoh.Sample) -> None:
+                with lock:
+                    published[name].append(sample.payload.to_bytes())
+            return on_sample
+
+        subs = [session.declare_subscriber(stack.keys(k), keep(k)) for k in RECORDED]
+        cpu0 = _children_cpu_s()
+        rec = subprocess.Popen([sys.executable, "-m", "services.cli", "record", "--connect", stack.endpoint,
+                                "--robot-id", stack.robot_id, "-o", str(bag), "--quiet"], cwd=REPO_ROOT, env=_env(),
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        try:
+            runs = asyncio.run(_drive(sc, stack))
+            time.sleep(1.0)  # the last messages reach the recorder
+        finally:
+            rec.send_signal(2)
+            out, _ = rec.communicate(timeout=60)
+            for s in subs:
+                s.undeclare()
+        if rec.returncode != 0:
+            raise RuntimeError(f"zagv record failed ({rec.returncode}):\n{out.decode(errors='replace')}")
+        cpu_s = _children_cpu_s() - cpu0
+    result = CorridorRecording(bag=bag, published=published, record_cpu_s=cpu_s, world_yaml=run_dir / "stack" /
+                               "world.yaml")
+    goals_done = [g for r in runs for g in r["goals"]]
+    result.goals, result.goals_reached = len(goals_done), sum(1 for g in goals_done if g["reached"])
+    odom = [codec.decode_as(m.Odometry, p) for p in published["odom"]]
+    result.sim_s = odom[-1].stamp - odom[0].stamp if len(odom) > 1 else 0.0
+    return result
+
+
+async def _drive(sc, stack: Stack) -> list[dict]:  # noqa: ANN001 - Scenario
+    """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
+    initial pose of its configuration, so that a replay into a fresh localization starts from the same prior."""
+    from services.cli.scenario import Client, run_goal, wait_until
+
+    c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
+    try:
+        await wait_until(lambda: c.truth is not None and c.pose is not None, "no ground truth and pose", 60.0)
+        goals = [await run_goal(c, sc, 1, k, g, 300.0, None) for k, g in enumerate(sc.goals, 1)]
+    finally:
+        c.close()
+    return [{"run": 1, "goals": goals}]
+
+
+def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate: float = 1.0,
+                             seed: int = AMCL_SEED) -> list[m.PoseWithCovariance]:
+    """Localization alone on ``world_yaml``, fed the bag's scan and odom by ``zagv replay``; its published poses."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config = run_dir / "replay.toml"
+    config.write_text(f"[clock]\nuse_sim_time = true\n\n[localization]\nrandom_seed = {seed}\n")
+    poses: list[m.PoseWithCovariance] = []
+    lock = threading.Lock()
+    with Stack(run_dir, ["localization"], sim=False, map_yaml=str(world_yaml),
+               extra_args=["--config", str(config)]) as stack:
+        session = stack.session()
+
+        def on_pose(sample: zenoh.Sample) -> None:
+            with lock:
+                poses.append(codec.decode_as(m.PoseWithCovariance, sample.payload.to_bytes()))
+
+        sub = session.declare_subscriber(stack.keys("pose"), on_pose)
+        subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "scan", "odom", "--connect",
+                        stack.endpoint, "--robot-id", stack.robot_id, "--rate", str(rate), "--quiet"],
+                       cwd=REPO_ROOT, env=_env(), check=True, stdin=subprocess.DEVNULL, timeout=3600)
+        time.sleep(1.0)  # the last poses arrive
+        sub.undeclare()
+    return poses
+
+
+def trajectory_rms_m(recorded: list[m.PoseWithCovariance], replayed: list[m.PoseWithCovariance]) -> tuple[float, int]:
+    """RMS position difference over the poses both runs published for the same scan stamp; (rms_m, matched)."""
+    ref = {round(p.stamp, 6): p.pose for p in recorded}
+    d2 = [(p.pose.x - ref[k].x) ** 2 + (p.pose.y - ref[k].y) ** 2
+          for p in replayed if (k := round(p.stamp, 6)) in ref]
+    if not d2:
+        return float("inf"), 0
+    return float(np.sqrt(np.mean(d2))), len(d2)
+
+
+def replay_speed_factor(bag: Path) -> float:
+    """Bag seconds per wall second of ``zagv replay --rate 0`` (publishing into a router with no subscriber)."""
+    from services.cli.stack_process import free_port
+    from services.recorder.source import BagSource
+
+    port = free_port()
+    router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+                              cwd=REPO_ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(1.0)
+        with BagSource(bag) as src:
+            bag_s = (src.end_ns - src.start_ns) / 1e9
+        t0 = time.monotonic()
+        subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "--rate", "0", "--quiet",
+                        "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+        return bag_s / (time.monotonic() - t0)
+    finally:
+        router.terminate()
+        router.wait()
+
+
+def bag_mb(bag: Path) -> float:
+    return sum(f.stat().st_size for f in bag.rglob("*") if f.is_file()) / 1e6
+
+
+def bench_record() -> list[BenchRow]:
+    with tempfile.TemporaryDirectory(prefix="zagv-bench-") as tmp:
+        rec = record_corridor(Path(tmp))
+        minutes = rec.sim_s / 60.0
+        return [
+            BenchRow("record.mb_per_min", bag_mb(rec.bag) / minutes, "MB/min", "corridor Table 3 run, all topics"),
+            BenchRow("record.cpu_cores", rec.record_cpu_s / rec.sim_s, "cores", "zagv record at 1x; <= 0.1"),
+            BenchRow("replay.speed_factor", replay_speed_factor(rec.bag), "x", "bag s per wall s, --rate 0; >= 5"),
+        ]
+
+
+BENCHES = [("record", bench_record)]
