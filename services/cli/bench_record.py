@@ -46,6 +46,8 @@ class CorridorRecording:
     goals_reached: int = 0
     goals: int = 0
     world_yaml: Path | None = None
+    estop_s: float | None = None
+    blackbox_dir: Path | None = None
 
 
 def _env() -> dict[str, str]:
@@ -58,8 +60,11 @@ def _children_cpu_s() -> float:
 
 
 def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3.0,
-                    extra_args: list[str] | None = None) -> CorridorRecording:
-    """Drive the first ``goals`` Table 3 goals (all when None) once while ``zagv record`` records everything."""
+                    extra_args: list[str] | None = None, estop_at_s: float | None = None) -> CorridorRecording:
+    """Drive the first ``goals`` Table 3 goals (all when None) once while ``zagv record`` records everything.
+
+    With ``estop_at_s``, the recorder service (black box) runs too, and once the goals are done and the sim clock has
+    passed ``estop_at_s`` the drive is e-stopped; the black box bag it leaves is waited for."""
     from services.cli.scenario import load_scenario
 
     sc = load_scenario(SCENARIO)
@@ -71,10 +76,11 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
     published: dict[str, list[bytes]] = {k: [] for k in RECORDED}
     lock = threading.Lock()
     args = ["--set", f"localization.random_seed={AMCL_SEED}", *(extra_args or [])]
-    stack = Stack(run_dir / "stack", ["sim", "drive", "lidar", "localization", "nav"], speed=speed,
-                  extra_args=args)
+    services = ["sim", "drive", "lidar", "localization", "nav"] + (["recorder"] if estop_at_s is not None else [])
+    stack = Stack(run_dir / "stack", services, speed=speed, extra_args=args)
+    estop_s = None
     (run_dir / "stack").mkdir(parents=True, exist_ok=True)
-    with stack:
+    with stack.start(ready_timeout_s=300.0):
         session = stack.session()
 
         def keep(name: str):  # noqa: ANN202
@@ -90,6 +96,9 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         try:
             runs = asyncio.run(_drive(sc, stack))
+            if estop_at_s is not None:
+                estop_s = asyncio.run(_estop_at(stack, estop_at_s))
+                stack.wait_line(r"black box saved", timeout_s=120.0)
             time.sleep(1.0)  # the last messages reach the recorder
         finally:
             rec.send_signal(2)
@@ -99,8 +108,9 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
         if rec.returncode != 0:
             raise RuntimeError(f"zagv record failed ({rec.returncode}):\n{out.decode(errors='replace')}")
         cpu_s = _children_cpu_s() - cpu0
-    result = CorridorRecording(bag=bag, published=published, record_cpu_s=cpu_s, world_yaml=run_dir / "stack" /
-                               "world.yaml")
+    result = CorridorRecording(bag=bag, published=published, record_cpu_s=cpu_s,
+                               world_yaml=run_dir / "stack" / "world.yaml", estop_s=estop_s,
+                               blackbox_dir=run_dir / "stack" / "blackbox")
     goals_done = [g for r in runs for g in r["goals"]]
     result.goals, result.goals_reached = len(goals_done), sum(1 for g in goals_done if g["reached"])
     odom = [codec.decode_as(m.Odometry, p) for p in published["odom"]]
@@ -122,6 +132,23 @@ async def _drive(sc, stack: Stack) -> list[dict]:  # noqa: ANN001 - Scenario
     return [{"run": 1, "goals": goals}]
 
 
+async def _estop_at(stack: Stack, at_s: float) -> float:
+    """Wait for sim time ``at_s``, e-stop the drive; returns the sim time of the e-stop."""
+    from services.cli.scenario import Client, wait_until
+    from services.common.node import query
+
+    c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
+    try:
+        await wait_until(lambda: c.sim_time >= at_s, f"sim time {at_s} s", 600.0)
+        t = c.sim_time
+        reply = await query(c.session, stack.keys, "drive/estop", m.Empty(), timeout_s=10.0)
+        if not reply.ok:
+            raise RuntimeError(f"drive/estop refused: {reply.message}")
+        return t
+    finally:
+        c.close()
+
+
 def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate: float = 1.0,
                              seed: int = AMCL_SEED) -> list[m.PoseWithCovariance]:
     """Localization alone on ``world_yaml``, fed the bag's scan and odom by ``zagv replay``; its published poses."""
@@ -131,7 +158,7 @@ def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate
     poses: list[m.PoseWithCovariance] = []
     lock = threading.Lock()
     with Stack(run_dir, ["localization"], sim=False, map_yaml=str(world_yaml),
-               extra_args=["--config", str(config)]) as stack:
+               extra_args=["--config", str(config)]).start(ready_timeout_s=300.0) as stack:
         session = stack.session()
 
         def on_pose(sample: zenoh.Sample) -> None:
