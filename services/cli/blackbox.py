@@ -40,7 +40,7 @@ def run_save(args: argparse.Namespace) -> int:
 
 
 def run_list(args: argparse.Namespace) -> int:
-    from services.recorder.listing import list_bags
+    from services.common.bagfiles import list_bags
 
     for entry in list_bags(Path(args.folder)):
         print(f"{entry.name}  {entry.size_bytes / 1e6:7.2f} MB  {entry.duration_s:6.1f} s  {entry.messages} msgs")

@@ -35,6 +35,7 @@ from litestar.openapi.spec import Components, SecurityScheme
 from litestar.static_files import create_static_files_router
 from litestar.status_codes import HTTP_200_OK
 
+from services.hmi_api import blackbox
 from services.hmi_api.backend import Backend, RobotRejected, RobotUnavailable
 from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseNotFound, PoseRecord
 
@@ -489,6 +490,7 @@ def create_app(backend: Backend) -> Litestar:
             goal_cancel, home, initial_pose, mapping_start, mapping_save, mapping_stop, map_json, map_png, velocities,
             velocities_csv, poses_list, poses_add,
             poses_export, poses_import, poses_run, poses_patch, poses_delete, poses_move, poses_send, ws,
+            *blackbox.ROUTES,
         ],
         security=[{"BearerToken": []}],
         before_request=strict_body,

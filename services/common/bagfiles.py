@@ -1,4 +1,5 @@
-"""Saved black box bags in a folder, with size, duration and message count from their ``metadata.yaml``."""
+"""Saved black box bags (rosbag2 folders ``blackbox_*``) in a folder: size, duration and message count from their
+``metadata.yaml``. Shared by the recorder's CLI and the HMI, which list what the recorder service wrote."""
 
 from __future__ import annotations
 
