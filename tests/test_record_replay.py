@@ -19,7 +19,8 @@ from proto import messages as m
 from services.cli.bench_record import record_corridor, replay_into_localization, trajectory_rms_m
 from services.recorder.rosconv import quat_to_yaw
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 @pytest.fixture(scope="module")

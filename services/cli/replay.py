@@ -172,7 +172,7 @@ def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control,
         if clock_pub is not None:
             clock_pub.put(codec.encode(Clock(stamp=t_ns / 1e9, speed_factor=rate if rate > 0 else 0.0)))
 
-    for t_ns, name, msg in source.messages(start_ns, end_ns):
+    for t_ns, name, msg in source.messages(start_ns, end_ns, wanted):
         if name == "clock" or (wanted is not None and name not in wanted):
             continue
         target = remaps.get(name, name)

@@ -29,7 +29,7 @@ from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
-SERVICES = ["sim", "drive", "lidar", "localization", "nav", "recorder", "foxglove_bridge", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "localization", "nav", "recorder", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -78,8 +78,8 @@ class StackPlan:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
-        if not self.foxglove_port:
-            names = [s for s in names if s != "foxglove_bridge"]
+        if self.foxglove_port and service_available("foxglove_bridge"):  # opt-in: it opens a port
+            names.insert(len(names) - ("hmi_api" in names), "foxglove_bridge")
         if self.only is not None:
             names = [s for s in names if s in self.only]
         return names

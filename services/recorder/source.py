@@ -67,10 +67,16 @@ class BagSource:
         self.skipped[topic] += 1
         self.problems.setdefault(topic, reason)
 
-    def messages(self, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[tuple[int, str, Any]]:
-        """``(log_time_ns, zagv topic name, message)``; static transforms before ``start_ns`` are still applied."""
+    def messages(self, start_ns: int | None = None, end_ns: int | None = None,
+                 names: set[str] | None = None) -> Iterator[tuple[int, str, Any]]:
+        """``(log_time_ns, zagv topic name, message)``, only of the topic ``names`` when given (other bag topics
+        are not even deserialized); static transforms (``/tf_static``, the laser mount) are always applied, also
+        those before ``start_ns``."""
         conns = []
         for c in self._reader.connections:
+            if names is not None and c.topic != "/tf_static" and c.topic.lstrip("/") not in names and not (
+                    c.topic == "/tf" and "tf/map_odom" in names):
+                continue
             if c.msgtype in DECODABLE:
                 conns.append(c)
             else:
