@@ -8,6 +8,7 @@ The latched ``map`` is fetched once at start. Prints a progress line (messages, 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import queue
 import sys
 import time
@@ -68,19 +69,41 @@ def run_record(args: argparse.Namespace) -> int:
     keys = client_keys(args)
     names = selected_names(args.keys)
     out = Path(args.output or datetime.now().strftime("zagv_%Y%m%d_%H%M%S"))
-    samples: queue.Queue[tuple[str, bytes]] = queue.Queue()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        samples.put((str(sample.key_expr), sample.payload.to_bytes()))
-
     try:
         recorder = BagRecorder(out, robot_id=keys.robot_id, split_bytes=int(args.split_size_mb * 1e6),
                                split_duration_s=args.split_duration)
     except FileExistsError as exc:
         print(f"zagv record: {exc}", file=sys.stderr)
         return 2
+    samples: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
+    clock = LogClock()
+    clock_key = keys("clock")
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        # stamped on arrival: a recorder that falls behind still logs each message at the time it was published
+        key, payload = str(sample.key_expr), sample.payload.to_bytes()
+        if key == clock_key:
+            with contextlib.suppress(codec.ProtoDecodeError):
+                clock.on_clock(codec.decode_as(Clock, payload, key))
+        samples.put((key, payload, clock.now_ns()))
+
     session = client_session(args)
     subs = []
+    bad: dict[str, int] = {}
+
+    def write(key: str, payload: bytes, log_ns: int) -> None:
+        name = split_key(key)[1]
+        if name not in TOPICS or (names is not None and name not in names):
+            return
+        try:
+            msg = codec.decode(name, payload)
+        except codec.ProtoDecodeError as exc:
+            bad[name] = bad.get(name, 0) + 1
+            if bad[name] == 1:
+                print(f"zagv record: skipping bad payloads on {name}: {exc}", file=sys.stderr)
+            return
+        recorder.write(name, msg, log_ns)
+
     try:
         if names is None:
             subs.append(session.declare_subscriber(keys.everything, on_sample))
@@ -88,29 +111,10 @@ def run_record(args: argparse.Namespace) -> int:
             subs += [session.declare_subscriber(keys(n), on_sample) for n in dict.fromkeys([*names, "clock"])]
         if names is None or "map" in names:
             session.get(keys("map"), lambda r: r.ok is not None and on_sample(r.ok), timeout=2.0)
-        clock = LogClock()
-        bad: dict[str, int] = {}
         next_line = time.monotonic() + 1.0
         while True:
-            try:
-                key, payload = samples.get(timeout=0.2)
-            except queue.Empty:
-                key = ""
-            if key:
-                name = split_key(key)[1]
-                if name in TOPICS:
-                    try:
-                        msg = codec.decode(name, payload)
-                    except codec.ProtoDecodeError as exc:
-                        bad[name] = bad.get(name, 0) + 1
-                        if bad[name] == 1:
-                            print(f"zagv record: skipping bad payloads on {name}: {exc}", file=sys.stderr)
-                        msg = None
-                    if msg is not None:
-                        if isinstance(msg, Clock):
-                            clock.on_clock(msg)
-                        if names is None or name in names:
-                            recorder.write(name, msg, clock.now_ns())
+            with contextlib.suppress(queue.Empty):
+                write(*samples.get(timeout=0.2))
             if not args.quiet and time.monotonic() >= next_line:
                 next_line += 1.0
                 print(f"\rzagv record: {recorder.stats.line()}", end="", flush=True)
@@ -122,6 +126,11 @@ def run_record(args: argparse.Namespace) -> int:
         for s in subs:
             s.undeclare()
         session.close()
+        while True:  # what arrived before the stop is written
+            try:
+                write(*samples.get_nowait())
+            except queue.Empty:
+                break
         bags = recorder.close()
         print(f"\rzagv record: {recorder.stats.line()}")
         for bag in bags:
