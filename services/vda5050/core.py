@@ -128,7 +128,7 @@ class Edge:
 class ActionState:
     action_id: str
     action_type: str
-    status: str  # waiting | initializing | running | finished | failed
+    status: str  # WAITING | INITIALIZING | RUNNING | FINISHED | FAILED
     description: str = ""
     result: str = ""
 
@@ -270,7 +270,7 @@ class Vehicle:
         """The outcome of an effect that stood for an action (initPosition)."""
         for a in self.action_states:
             if a.action_id == action_id:
-                a.status = "finished" if ok else "failed"
+                a.status = "FINISHED" if ok else "FAILED"
                 a.result = result[:200]
                 if not ok:
                     self.message_errors.append(_error("instantActionError", "WARNING", result,
@@ -333,7 +333,7 @@ class Vehicle:
             self.driven_sequence = ""  # the base is done; nav finishes its last fine approach on its own
         if self._waiting_to_stop and not self.driving:
             for a in self._waiting_to_stop:
-                a.status = "finished"
+                a.status = "FINISHED"
             self._waiting_to_stop.clear()
         return effects
 
@@ -483,7 +483,7 @@ class Vehicle:
         self.signals.nav_error = ""
         if new_order and not stitched:
             # a fresh order: actionStates of the previous one go (VDA 5050 §6.10.8, kept until a new order)
-            self.action_states = [a for a in self.action_states if a.status not in ("finished", "failed")]
+            self.action_states = [a for a in self.action_states if a.status not in ("FINISHED", "FAILED")]
         self.order_id, self.order_update_id = order["orderId"], order["orderUpdateId"]
         if stitched:
             # the first node is the base's last one, already in nodeStates: keep the current base, replace the rest
@@ -512,12 +512,12 @@ class Vehicle:
                                               f"supported; supported: {', '.join(SUPPORTED_INSTANT_ACTIONS)}",
                                               arefs))
             return []
-        state = ActionState(action_id, kind, "running", action.get("actionDescription", ""))
+        state = ActionState(action_id, kind, "RUNNING", action.get("actionDescription", ""))
         self.action_states = [a for a in self.action_states if a.action_id != action_id] + [state]
         params = {p["key"]: p["value"] for p in action.get("actionParameters", [])}
         if kind == "cancelOrder":
             if not self.has_base() and not self.nodes:
-                state.status = "failed"
+                state.status = "FAILED"
                 state.result = "no order to cancel"
                 self.message_errors.append(_error("noOrderToCancel", "WARNING", "cancelOrder without an active "
                                                   "order", arefs))
@@ -537,7 +537,7 @@ class Vehicle:
         if kind == "stopPause":
             was = self.paused
             self.paused = False
-            state.status = "finished"
+            state.status = "FINISHED"
             return self._drive_base() if was else []
         if kind == "initPosition":
             try:
@@ -548,13 +548,13 @@ class Vehicle:
                 if map_id != self.s.map_id:
                     raise ValueError(f"mapId {map_id!r} is not the vehicle's map {self.s.map_id!r}")
             except (KeyError, TypeError, ValueError) as exc:
-                state.status = "failed"
+                state.status = "FAILED"
                 state.result = f"bad parameters: {exc}"
                 self.message_errors.append(_error("instantActionError", "WARNING", f"initPosition: {exc} "
                                                   "(needs x, y, theta, mapId)", arefs))
                 return []
             if self.has_base():
-                state.status = "failed"
+                state.status = "FAILED"
                 state.result = "refused while an order is being driven"
                 self.message_errors.append(_error("instantActionError", "WARNING", "initPosition refused while an "
                                                   "order is being driven", arefs))
@@ -563,9 +563,9 @@ class Vehicle:
                 self.last_node_id = str(params["lastNodeId"])
             return [SetInitialPose(action_id, x, y, theta)]
         if kind == "stateRequest":
-            state.status = "finished"
+            state.status = "FINISHED"
             return [PublishState()]
-        state.status = "finished"  # factsheetRequest
+        state.status = "FINISHED"  # factsheetRequest
         return [PublishFactsheet()]
 
     # ------------------------------------------------------------------ outbound bodies
@@ -629,7 +629,7 @@ class Vehicle:
             "batteryState": self.battery_state(),
             "errors": self.errors(),
             "information": [],
-            "safetyState": {"eStop": "remote" if self.signals.estopped else "none", "fieldViolation": False},
+            "safetyState": {"eStop": "REMOTE" if self.signals.estopped else "NONE", "fieldViolation": False},
             "velocity": self.velocity(),
         }
         position = self.agv_position()
