@@ -175,11 +175,15 @@ def test_cancel_order_stops_and_finishes_once_the_robot_stands() -> None:
     v.on_velocity(0.2, 0.0, 0.0)
     out = v.receive("instantActions", instant(("cancelOrder", "c1")))
     assert out == [StopDriving("cancelOrder")]
+    s = valid_state(v)  # still moving: the order stays until the robot stands (VDA 5050 §6.7.1)
+    assert [n["nodeId"] for n in s["nodeStates"]] == ["b"]
+    assert s["actionStates"][-1] == {"actionId": "c1", "actionType": "cancelOrder", "actionStatus": "RUNNING"}
+    v.on_pose(5.0, 1.0, 0.0)  # coasting onto b while canceling does not traverse it
+    assert v.last_node_id == "a"
+    v.on_velocity(0.0, 0.0, 0.0)
     s = valid_state(v)
     assert s["nodeStates"] == [] and s["edgeStates"] == [] and s["orderId"] == "o1"
-    assert s["actionStates"][-1] == {"actionId": "c1", "actionType": "cancelOrder", "actionStatus": "RUNNING"}
-    v.on_velocity(0.0, 0.0, 0.0)
-    assert valid_state(v)["actionStates"][-1]["actionStatus"] == "FINISHED"
+    assert s["actionStates"][-1]["actionStatus"] == "FINISHED"
     v.receive("instantActions", instant(("cancelOrder", "c2")))  # nothing left to cancel
     assert last_error(v)["errorType"] == "noOrderToCancel"
     assert v.action_states[-1].status == "FAILED"

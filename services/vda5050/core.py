@@ -219,6 +219,7 @@ class Vehicle:
         self.driven_sequence = ""  # id of the nav sequence currently driving the base ("" when none)
         self._sequence_counter = 0
         self._waiting_to_stop: list[ActionState] = []  # cancelOrder / startPause finish once the robot stands
+        self._canceling = False  # cancelOrder received: the order is dropped once the robot stands
         self.received = 0
 
     # ------------------------------------------------------------------ inputs: map and signals
@@ -326,12 +327,15 @@ class Vehicle:
     def _progress(self) -> list[Effect]:
         effects: list[Effect] = []
         pose = self.signals.pose
-        if pose is not None and not self.paused:
+        if pose is not None and not self.paused and not self._canceling:
             while self.nodes and self.nodes[0].released and self.within(self.nodes[0], pose):
                 self._traverse(self.nodes[0])
         if self.driven_sequence and not self.base_nodes():
             self.driven_sequence = ""  # the base is done; nav finishes its last fine approach on its own
         if self._waiting_to_stop and not self.driving:
+            if self._canceling:  # VDA 5050 §6.7.1: stopped, the order's nodes and edges go with cancelOrder FINISHED
+                self.nodes, self.edges = [], []
+                self._canceling = False
             for a in self._waiting_to_stop:
                 a.status = "FINISHED"
             self._waiting_to_stop.clear()
@@ -404,6 +408,9 @@ class Vehicle:
                 if order["orderUpdateId"] == self.order_update_id:
                     return []  # the same update again (VDA 5050 §6.6.3: discard it)
                 self._check_stitch(nodes, "orderUpdateError")
+            elif self._canceling:
+                raise OrderRejected("orderError", "the previous order is being canceled; send the new one once "
+                                    "cancelOrder is FINISHED")
             elif self.has_base():
                 self._check_stitch(nodes, "orderError")
             self._check_reachable(nodes)
@@ -516,13 +523,13 @@ class Vehicle:
         self.action_states = [a for a in self.action_states if a.action_id != action_id] + [state]
         params = {p["key"]: p["value"] for p in action.get("actionParameters", [])}
         if kind == "cancelOrder":
-            if not self.has_base() and not self.nodes:
+            if (not self.has_base() and not self.nodes) or self._canceling:
                 state.status = "FAILED"
                 state.result = "no order to cancel"
                 self.message_errors.append(_error("noOrderToCancel", "WARNING", "cancelOrder without an active "
                                                   "order", arefs))
                 return []
-            self.nodes, self.edges = [], []
+            self._canceling = True
             self.driven_sequence = ""
             self.paused = False
             self._waiting_to_stop.append(state)
