@@ -145,6 +145,10 @@ def test_online_state_and_factsheet(rig: Rig) -> None:
     state = rig.state_where(lambda s: s.get("agvPosition") and s["agvPosition"]["positionInitialized"],
                             timeout_s=60, what="a state with an initialized position")
     assert state["safetyState"] == {"eStop": "NONE", "fieldViolation": False}
+    # the RoboteQ battery voltage (the simulated controllers report 48.0 V) reaches batteryState
+    state = rig.state_where(lambda s: "batteryVoltage" in s["batteryState"], timeout_s=30)
+    assert state["batteryState"]["batteryVoltage"] == pytest.approx(48.0, abs=0.05)
+    assert state["operatingMode"] == "AUTOMATIC"
     assert 0.0 < state["agvPosition"]["localizationScore"] <= 1.0
     assert rig.master.find(lambda e: e["event"] == "connection" and e["state"] == "ONLINE")
     wait_for_sync(lambda: rig.recorder.count("factsheet"), timeout_s=10, message="no factsheet")
@@ -256,6 +260,7 @@ def test_start_pause_holds_and_stop_pause_resumes(rig: Rig) -> None:
                     and e["actionStatus"] == "FINISHED", timeout_s=10, after=m1)
     s = rig.state_where(lambda s: s["paused"] and not s["driving"], timeout_s=10, after=m1)
     assert [n["nodeId"] for n in s["nodeStates"]] == ["p2"]
+    wait_for_sync(lambda: _speed(rig.truth.last()) < 0.002, timeout_s=10, message="the robot did not stand")
     held = rig.here()
     wall = time.monotonic()
     wait_for_sync(lambda: len(rig.truth.since(wall)) > 20 * SPEED, timeout_s=20)

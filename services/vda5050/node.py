@@ -136,8 +136,8 @@ async def run(ctx: ServiceContext) -> None:
         apply(out)
 
     def on_wheels(msg: m.WheelStates) -> None:
-        volts = getattr(msg, "battery_v", None)
-        apply(vehicle.on_drive(msg.estopped, msg.fault, msg.enabled, volts))
+        volts = [mod.battery_v for mod in msg.modules if mod.battery_v > 0 and math.isfinite(mod.battery_v)]
+        apply(vehicle.on_drive(msg.estopped, msg.fault, msg.enabled, sum(volts) / len(volts) if volts else None))
 
     seen_results: dict[str, int] = {}
 
