@@ -261,3 +261,16 @@ def test_factsheet_visualization_and_connection_validate() -> None:
     connection = headers.wrap("connection", {"connectionState": "CONNECTIONBROKEN"}, HEADER["timestamp"])
     assert validate("connection", connection) == []
     assert headers.wrap("connection", {"connectionState": "ONLINE"}, HEADER["timestamp"])["headerId"] == 1
+
+
+def test_state_is_due_on_order_or_safety_changes_but_not_on_motion_alone() -> None:
+    v = Vehicle(VehicleSettings())
+    key = v.change_key()
+    v.on_pose(1.0, 1.0, 0.0)
+    v.on_pose(1.1, 1.0, 0.0)
+    assert v.change_key() == key  # position and velocity go out with visualization and the periodic state
+    v.on_drive(False, "", False, 48.0)
+    assert v.change_key() != key  # the battery voltage became known
+    key = v.change_key()
+    v.on_drive(True, "", False, 48.0)
+    assert v.change_key() != key  # e-stop

@@ -645,10 +645,13 @@ class Vehicle:
         return body
 
     def change_key(self) -> str:
-        """What makes a state report due (VDA 5050 §6.10.1: on change): everything but pose, velocity, battery."""
+        """What makes a state report due (VDA 5050 §6.10.1: on change): everything but pose, velocity and the
+        battery's fine print (a whole percent of charge, or the voltage becoming known, counts)."""
         body = self.state()
-        for k in ("agvPosition", "velocity", "batteryState"):
+        for k in ("agvPosition", "velocity"):
             body.pop(k, None)
+        battery = body.pop("batteryState")
+        body["battery"] = (round(battery["batteryCharge"]), "batteryVoltage" in battery)
         return json.dumps(body, sort_keys=True)
 
     def visualization(self) -> dict[str, Any]:

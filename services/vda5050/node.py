@@ -259,7 +259,19 @@ async def run(ctx: ServiceContext) -> None:
                 link.client = None
             await asyncio.sleep(cfg.reconnect_delay_s)
 
-    tasks = [node.spawn(carry_out()), node.spawn(state_reporter()), node.spawn(mqtt_session())]
+    async def fetch_map() -> None:
+        """The latched map may have gone out before the subscriber existed: ask for it until it is in hand."""
+        while vehicle.reachability is None:
+            try:
+                grid = await node.query("map", m.Empty(), timeout_s=2.0)
+                if vehicle.reachability is None:
+                    on_map(grid)
+            except QueryError as exc:
+                log.info("no map yet: %s", exc)
+            await asyncio.sleep(3.0)
+
+    tasks = [node.spawn(carry_out()), node.spawn(state_reporter()), node.spawn(mqtt_session()),
+             node.spawn(fetch_map())]
     try:
         await ctx.stop.wait()
     finally:
