@@ -145,11 +145,11 @@ def test_online_state_and_factsheet(rig: Rig) -> None:
     state = rig.state_where(lambda s: s.get("agvPosition") and s["agvPosition"]["positionInitialized"],
                             timeout_s=60, what="a state with an initialized position")
     assert state["safetyState"] == {"eStop": "NONE", "fieldViolation": False}
+    assert 0.0 < state["agvPosition"]["localizationScore"] <= 1.0  # the filter's match score
     # the RoboteQ battery voltage (the simulated controllers report 48.0 V) reaches batteryState
     state = rig.state_where(lambda s: "batteryVoltage" in s["batteryState"], timeout_s=30)
     assert state["batteryState"]["batteryVoltage"] == pytest.approx(48.0, abs=0.05)
     assert state["operatingMode"] == "AUTOMATIC"
-    assert 0.0 < state["agvPosition"]["localizationScore"] <= 1.0
     assert rig.master.find(lambda e: e["event"] == "connection" and e["state"] == "ONLINE")
     wait_for_sync(lambda: rig.recorder.count("factsheet"), timeout_s=10, message="no factsheet")
     wait_for_sync(lambda: rig.recorder.count("visualization"), timeout_s=10, message="no visualization")
