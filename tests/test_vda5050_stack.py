@@ -197,9 +197,9 @@ def test_order_update_appending_horizon_nodes_is_accepted_and_a_stale_one_reject
     s = rig.state_where(lambda s: s["orderUpdateId"] == 1, timeout_s=10, after=mark)
     assert [(n["nodeId"], n["released"]) for n in s["nodeStates"]] == [("n6", False), ("n7", False)]
     assert [(e["edgeId"], e["released"]) for e in s["edgeStates"]] == [("n5-n6", False), ("n6-n7", False)]
-    # horizon nodes are not driven: the robot stays at n5
-    wall = time.monotonic()
-    wait_for_sync(lambda: len(rig.truth.since(wall)) > 10 * SPEED, timeout_s=20)
+    # horizon nodes are not driven: the robot stays at n5 (watched for 3 s of sim time)
+    wall, sim = time.monotonic(), rig.truth.last().stamp
+    wait_for_sync(lambda: rig.truth.last().stamp > sim + 3.0, timeout_s=30)
     assert all(math.hypot(t[2].pose.x - x0, t[2].pose.y - y0) < 0.05 for t in rig.truth.since(wall))
 
     stale = order("corridor-1", 0, [("n5", 9.0, 3.2), ("n6", 12.0, 3.2)], first_seq=seq)
@@ -215,12 +215,12 @@ def test_order_to_an_unreachable_node_is_rejected_and_nothing_moves(rig: Rig) ->
     x0, y0 = rig.here()
     for name, (x, y) in {"in-wall": (9.0, 6.5), "off-map": (40.0, 3.2)}.items():
         o = order(f"unreachable-{name}", 0, [("a", x0, y0), ("b", x, y)])
-        wall = time.monotonic()
+        wall, sim = time.monotonic(), rig.truth.last().stamp
         mark = rig.assign(o)
         done = rig.processed(o, mark, timeout_s=10)
         assert done["error"] is not None and done["error"]["errorType"] == "noRouteError", done
         assert "b" in done["error"]["errorDescription"], done
-        wait_for_sync(lambda w=wall: len(rig.truth.since(w)) > 10 * SPEED, timeout_s=20)
+        wait_for_sync(lambda s0=sim: rig.truth.last().stamp > s0 + 3.0, timeout_s=30)  # watched for 3 s sim
         moved = max(math.hypot(t[2].pose.x - x0, t[2].pose.y - y0) for t in rig.truth.since(wall))
         assert moved < 0.03, (name, moved)
         assert not rig.master.last_state()["driving"]
@@ -262,8 +262,8 @@ def test_start_pause_holds_and_stop_pause_resumes(rig: Rig) -> None:
     assert [n["nodeId"] for n in s["nodeStates"]] == ["p2"]
     wait_for_sync(lambda: _speed(rig.truth.last()) < 0.002, timeout_s=10, message="the robot did not stand")
     held = rig.here()
-    wall = time.monotonic()
-    wait_for_sync(lambda: len(rig.truth.since(wall)) > 20 * SPEED, timeout_s=20)
+    wall, sim = time.monotonic(), rig.truth.last().stamp
+    wait_for_sync(lambda: rig.truth.last().stamp > sim + 5.0, timeout_s=30)  # held for 5 s of sim time
     drift = max(math.hypot(t[2].pose.x - held[0], t[2].pose.y - held[1]) for t in rig.truth.since(wall))
     assert drift < 0.02, drift
     m2 = rig.instant("stopPause", "pause-2")
