@@ -130,7 +130,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     master = None
     try:
         master = Master(broker.port)
-        stack.start(ready_timeout_s=120)
+        stack.start(ready_timeout_s=240)
         truth = Truth(stack)
         yield Rig(stack, broker, master, recorder, truth)
     finally:
