@@ -37,17 +37,40 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 class LogClock:
-    """The robot's time for log stamps: the last ``clock`` message's stamp once one arrived, else wall time."""
+    """The robot's time for log stamps: the last ``clock`` message's stamp once one arrived, else wall time.
+
+    The time base is chosen once: the clock's when a ``clock`` message comes within ``WAIT_S`` of the start (messages
+    that arrived before it, such as the latched map, get its time), else wall time for the whole recording, so a bag
+    never mixes the two."""
+
+    WAIT_S = 1.0
 
     def __init__(self) -> None:
         self.sim_s: float | None = None
+        self.first_sim_s: float | None = None
+        self.sim_base: bool | None = None
+        self.started = time.monotonic()
 
     def on_clock(self, msg: Clock) -> None:
         if self.sim_s is None or msg.stamp >= self.sim_s or msg.stamp < self.sim_s - 1.0:
             self.sim_s = msg.stamp
+            if self.first_sim_s is None:
+                self.first_sim_s = msg.stamp
+                self.sim_base = time.monotonic() - self.started <= self.WAIT_S
 
-    def now_ns(self) -> int:
-        return int(round((self.sim_s if self.sim_s is not None else time.time()) * 1e9))
+    def arrival(self) -> tuple[int | None, int]:
+        """(sim ns or None, wall ns) of a message arriving now."""
+        return (None if self.sim_s is None else int(round(self.sim_s * 1e9))), time.time_ns()
+
+    def log_ns(self, sim_ns: int | None, wall_ns: int) -> int | None:
+        """The log time of a message that arrived at (sim_ns, wall_ns); None: not decided yet (wait)."""
+        if self.sim_base is None and time.monotonic() - self.started >= self.WAIT_S:
+            self.sim_base = False
+        if self.sim_base is None:
+            return None
+        if not self.sim_base:
+            return wall_ns
+        return sim_ns if sim_ns is not None else int(round(self.first_sim_s * 1e9))
 
 
 def selected_names(keys: list[str]) -> list[str] | None:
@@ -75,7 +98,8 @@ def run_record(args: argparse.Namespace) -> int:
     except FileExistsError as exc:
         print(f"zagv record: {exc}", file=sys.stderr)
         return 2
-    samples: queue.Queue[tuple[str, bytes, int]] = queue.Queue()
+    samples: queue.Queue[tuple[str, bytes, int | None, int]] = queue.Queue()
+    pending: list[tuple[str, bytes, int | None, int]] = []
     clock = LogClock()
     clock_key = keys("clock")
 
@@ -85,13 +109,19 @@ def run_record(args: argparse.Namespace) -> int:
         if key == clock_key:
             with contextlib.suppress(codec.ProtoDecodeError):
                 clock.on_clock(codec.decode_as(Clock, payload, key))
-        samples.put((key, payload, clock.now_ns()))
+        samples.put((key, payload, *clock.arrival()))
 
     session = client_session(args)
     subs = []
     bad: dict[str, int] = {}
 
-    def write(key: str, payload: bytes, log_ns: int) -> None:
+    def write(key: str, payload: bytes, sim_ns: int | None, wall_ns: int) -> None:
+        log_ns = clock.log_ns(sim_ns, wall_ns)
+        if log_ns is None:
+            pending.append((key, payload, sim_ns, wall_ns))
+            return
+        while pending:
+            write(*pending.pop(0))
         name = split_key(key)[1]
         if name not in TOPICS or (names is not None and name not in names):
             return
@@ -126,11 +156,14 @@ def run_record(args: argparse.Namespace) -> int:
         for s in subs:
             s.undeclare()
         session.close()
+        clock.started -= clock.WAIT_S  # decide now for what is still undecided
         while True:  # what arrived before the stop is written
             try:
                 write(*samples.get_nowait())
             except queue.Empty:
                 break
+        while pending:
+            write(*pending.pop(0))
         bags = recorder.close()
         print(f"\rzagv record: {recorder.stats.line()}")
         for bag in bags:
