@@ -95,6 +95,11 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                                 "--robot-id", stack.robot_id, "-o", str(bag), "--quiet"], cwd=REPO_ROOT, env=_env(),
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
         try:
+            deadline = time.monotonic() + 120.0
+            while not (bag / "metadata.yaml").exists() and not any(bag.glob("*.mcap")):
+                if rec.poll() is not None or time.monotonic() > deadline:  # the robot moves once the bag is open
+                    raise RuntimeError("zagv record did not start recording")
+                time.sleep(0.05)
             runs = asyncio.run(_drive(sc, stack))
             if estop_at_s is not None:
                 estop_s = asyncio.run(_estop_at(stack, estop_at_s))
