@@ -14,6 +14,7 @@ process per second of robot time, i.e. cores at 1x), ``replay.speed_factor`` (ba
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import resource
 import subprocess
@@ -130,7 +131,7 @@ async def _drive(sc, stack: Stack) -> list[dict]:  # noqa: ANN001 - Scenario
 
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:
-        await wait_until(lambda: c.truth is not None and c.pose is not None, "no ground truth and pose", 60.0)
+        await wait_until(lambda: c.truth is not None and c.odom_count > 5, "no ground truth and odometry", 60.0)
         goals = [await run_goal(c, sc, 1, k, g, 300.0, None) for k, g in enumerate(sc.goals, 1)]
     finally:
         c.close()
@@ -155,22 +156,23 @@ async def _estop_at(stack: Stack, at_s: float) -> float:
 
 
 def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate: float = 1.0,
-                             seed: int = AMCL_SEED) -> list[m.PoseWithCovariance]:
-    """Localization alone on ``world_yaml``, fed the bag's scan and odom by ``zagv replay``; its published poses."""
+                             seed: int = AMCL_SEED) -> list[m.Transform2D]:
+    """Localization alone on ``world_yaml``, fed the bag's scan and odom by ``zagv replay``; the map -> odom
+    transforms it publishes (one per scan once localized)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     config = run_dir / "replay.toml"
     config.write_text(f"[clock]\nuse_sim_time = true\n\n[localization]\nrandom_seed = {seed}\n")
-    poses: list[m.PoseWithCovariance] = []
+    poses: list[m.Transform2D] = []
     lock = threading.Lock()
     with Stack(run_dir, ["localization"], sim=False, map_yaml=str(world_yaml),
                extra_args=["--config", str(config)]).start(ready_timeout_s=300.0) as stack:
         session = stack.session()
 
-        def on_pose(sample: zenoh.Sample) -> None:
+        def on_tf(sample: zenoh.Sample) -> None:
             with lock:
-                poses.append(codec.decode_as(m.PoseWithCovariance, sample.payload.to_bytes()))
+                poses.append(codec.decode_as(m.Transform2D, sample.payload.to_bytes()))
 
-        sub = session.declare_subscriber(stack.keys("pose"), on_pose)
+        sub = session.declare_subscriber(stack.keys("tf/map_odom"), on_tf)
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "scan", "odom", "--connect",
                         stack.endpoint, "--robot-id", stack.robot_id, "--rate", str(rate), "--quiet"],
                        cwd=REPO_ROOT, env=_env(), check=True, stdin=subprocess.DEVNULL, timeout=3600)
@@ -179,14 +181,34 @@ def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate
     return poses
 
 
-def trajectory_rms_m(recorded: list[m.PoseWithCovariance], replayed: list[m.PoseWithCovariance]) -> tuple[float, int]:
-    """RMS position difference over the poses both runs published for the same scan stamp; (rms_m, matched)."""
-    ref = {round(p.stamp, 6): p.pose for p in recorded}
-    d2 = [(p.pose.x - ref[k].x) ** 2 + (p.pose.y - ref[k].y) ** 2
-          for p in replayed if (k := round(p.stamp, 6)) in ref]
-    if not d2:
+def map_trajectory(map_odom: list[m.Transform2D], odom: list[m.Odometry]) -> tuple[np.ndarray, np.ndarray]:
+    """The robot's map pose at each odom stamp after the first map -> odom: the latest map -> odom (by stamp)
+    composed with that odom pose; (stamps (N,), poses (N, 3))."""
+    tf = sorted(map_odom, key=lambda t: t.stamp)
+    tf_stamps = np.array([t.stamp for t in tf])
+    out_t, out_p = [], []
+    for o in odom:
+        i = int(np.searchsorted(tf_stamps, o.stamp, side="right")) - 1
+        if i < 0:
+            continue
+        a = tf[i]
+        c, s = math.cos(a.theta), math.sin(a.theta)
+        out_t.append(o.stamp)
+        out_p.append((a.x + c * o.pose.x - s * o.pose.y, a.y + s * o.pose.x + c * o.pose.y, a.theta + o.pose.theta))
+    return np.array(out_t), np.array(out_p).reshape(-1, 3)
+
+
+def trajectory_rms_m(recorded: list[m.Transform2D], replayed: list[m.Transform2D],
+                     odom: list[m.Odometry]) -> tuple[float, int]:
+    """RMS position difference of the two map trajectories (``map_trajectory``) over the odom stamps both cover;
+    (rms_m, number of poses compared)."""
+    t_rec, p_rec = map_trajectory(recorded, odom)
+    t_rep, p_rep = map_trajectory(replayed, odom)
+    common, i_rec, i_rep = np.intersect1d(t_rec, t_rep, return_indices=True)
+    if not len(common):
         return float("inf"), 0
-    return float(np.sqrt(np.mean(d2))), len(d2)
+    d = p_rec[i_rec, :2] - p_rep[i_rep, :2]
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1)))), len(common)
 
 
 def replay_speed_factor(bag: Path) -> float:
