@@ -14,6 +14,7 @@ The watchdog also ends a process whose supervisor is gone (its parent pid change
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import signal
 import sys
@@ -86,11 +87,8 @@ class LoopWatchdog:
 
     def _say(self, text: str) -> None:
         # straight to stderr: the logging machinery may hold a lock that the hung loop owns
-        with_newline = f"{self.name}: liveness: {text}\n"
-        try:
-            os.write(sys.stderr.fileno(), with_newline.encode())
-        except (OSError, ValueError):
-            pass
+        with contextlib.suppress(OSError, ValueError):
+            os.write(sys.stderr.fileno(), f"{self.name}: liveness: {text}\n".encode())
 
     def _watch(self) -> None:
         orphaned_at: float | None = None
