@@ -9,8 +9,8 @@
 Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) into the
 maps folder and replies with the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
 whose frame starts at the current pose), or to navigation on ``map_yaml`` (the name of a map in the maps folder,
-never a path; empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/``nomotion`` are
-answered by AMCL (refused while mapping).
+never a path; empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/
+``nomotion`` are answered by AMCL (refused while mapping).
 """
 
 from __future__ import annotations
