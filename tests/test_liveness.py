@@ -4,11 +4,16 @@ leaving no process behind."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import textwrap
+import threading
 import time
 from pathlib import Path
 
@@ -136,3 +141,42 @@ def test_zagv_up_stops_within_10_s_of_ctrl_c_with_a_stopped_service(tmp_path: Pa
     assert took_s <= 10.0
     left = [name for name, pid in pids.items() if _alive(pid)]
     assert not left, f"left behind: {left}"
+
+
+@pytest.mark.integration
+def test_hung_loop_stops_the_systemd_watchdog_keepalives(router: str) -> None:
+    """What WatchdogSec in the service units relies on: WATCHDOG=1 comes from the event loop, so a blocked loop
+    stops it and systemd restarts the unit (the service also kills itself at the limit)."""
+    sock_dir = Path(tempfile.mkdtemp(prefix="zagv-notify-"))  # AF_UNIX paths are limited to 108 bytes
+    received: list[tuple[float, str]] = []
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(str(sock_dir / "notify"))
+        sock.settimeout(0.05)
+        env = {**os.environ, "NOTIFY_SOCKET": str(sock_dir / "notify"), "WATCHDOG_USEC": "2000000"}
+        env.pop("WATCHDOG_PID", None)
+        proc = subprocess.Popen([sys.executable, "-c", HANGING_SERVICE, "--connect", router,
+                                 "--set", "liveness.stall_s=1.0"], cwd=REPO_ROOT, env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        hung_at: list[float] = []
+
+        def read_output() -> None:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if "hanging now" in line:
+                    hung_at.append(time.monotonic())
+
+        threading.Thread(target=read_output, daemon=True).start()
+        try:
+            while proc.poll() is None:
+                with contextlib.suppress(TimeoutError):
+                    received.append((time.monotonic(), sock.recv(256).decode()))
+            code = proc.wait()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    shutil.rmtree(sock_dir, ignore_errors=True)
+    assert hung_at, "the service never hung"
+    feeds = [t for t, text in received if text == "WATCHDOG=1"]
+    assert [text for _, text in received][:1] == ["READY=1"] and feeds
+    assert all(t < hung_at[0] + 0.5 for t in feeds), "keep-alives went on while the loop was blocked"
+    assert code == -signal.SIGKILL  # killed at WatchdogSec by its own watchdog, as systemd would
