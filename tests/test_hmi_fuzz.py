@@ -67,7 +67,8 @@ def run_fuzz(stack, *, allow_unavailable: bool) -> None:
         client.login(password_of(stack))
         client.post("/api/poses", json={"name": "seed", "x": 1.0, "y": 2.0, "theta": 0.0})
         token = client.token
-    schema = schemathesis.openapi.from_url(f"{url}/api/schema/openapi.json")
+    schema = schemathesis.openapi.from_url(f"{url}/api/schema/openapi.json",
+                                           headers={"Authorization": f"Bearer {token}"})
     statuses: collections.Counter[tuple[str, int]] = collections.Counter()
     problems: list[str] = []
     operations = 0
