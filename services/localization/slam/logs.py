@@ -1,11 +1,15 @@
 """Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs and ROS 1 ``.bag`` files.
 
 CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
-(beams spread evenly over 180°, starting at -90°) and ``ROBOTLASER1 type start_angle fov resolution max_range
+(beams spread evenly over 180°, starting at -90°; the laser sits ``PARAM robot_frontlaser_offset`` m ahead of the
+robot, 0 when absent) and ``ROBOTLASER1 type start_angle fov resolution max_range
 accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
-tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp``; the stamp is the IPC
-timestamp. Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or
-``/tf`` odom→base), interpolated at each scan stamp, and the laser mount from ``/tf_static``.
+tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp`` (the mount is
+``robot_pose⁻¹ ⊕ laser_pose``); the stamp is the IPC timestamp. CARMEN records stay in file order (the logger
+writes them in time order); a log whose stamps do not increase strictly (some published logs carry truncated or
+zero stamps) gets its scan index as stamp and ``stamps_from_log = False``.
+Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or ``/tf`` odom→base),
+interpolated at each scan stamp, and the laser mount from ``/tf_static``.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .se2 import interpolate, wrap_angle
+from .se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
 
@@ -39,6 +43,7 @@ class LaserLog:
 
     scans: list[LaserScanRecord]
     sensor_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    stamps_from_log: bool = True
 
     @property
     def duration_s(self) -> float:
@@ -48,12 +53,16 @@ class LaserLog:
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
     """Scans of the FLASER / ROBOTLASER1 lines of a CARMEN log (other lines are ignored)."""
     scans: list[LaserScanRecord] = []
+    front_offset_m = 0.0
+    mounts: list[np.ndarray] = []
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields:
             continue
         try:
-            if fields[0] == "FLASER":
+            if fields[0] == "PARAM" and len(fields) > 2 and fields[1] == "robot_frontlaser_offset":
+                front_offset_m = float(fields[2])
+            elif fields[0] == "FLASER":
                 n = int(fields[1])
                 ranges = np.array(fields[2:2 + n], float)
                 rest = fields[2 + n:]
@@ -67,14 +76,31 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 ranges = np.array(fields[9:9 + n], float)
                 n_rem = int(fields[9 + n])
                 rest = fields[10 + n + n_rem:]
+                laser = np.array(rest[0:3], float)
                 odom = np.array(rest[3:6], float)
                 stamp = float(rest[11])
                 angles = start + np.arange(n) * (fov / max(n - 1, 1))
                 scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+                mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
-    scans.sort(key=lambda s: s.stamp_s)
-    return LaserLog(scans)
+    sensor_pose = np.median(np.array(mounts), axis=0) if mounts else np.array([front_offset_m, 0.0, 0.0])
+    stamps = np.array([s.stamp_s for s in scans])
+    from_log = bool(len(stamps) < 2 or np.all(np.diff(stamps) > 0))
+    if not from_log:
+        for k, scan in enumerate(scans):
+            scan.stamp_s = float(k)
+    return LaserLog(scans, sensor_pose, from_log)
+
+
+def with_mount(log: LaserLog, sensor_pose: np.ndarray) -> LaserLog:
+    """The same log re-expressed for a laser mounted at ``sensor_pose``: every odometry pose x becomes
+    x ⊕ s ⊕ s'⁻¹ so that the laser poses (x ⊕ s) and the scans are unchanged; only the robot frame moves."""
+    sensor_pose = np.asarray(sensor_pose, float)
+    shift = compose(log.sensor_pose, inverse(sensor_pose))
+    scans = [LaserScanRecord(s.stamp_s, s.ranges_m, s.angles_rad, compose(s.odom_pose, shift), s.min_range_m,
+                             s.max_range_m) for s in log.scans]
+    return LaserLog(scans, sensor_pose.copy(), log.stamps_from_log)
 
 
 def _yaw(q) -> float:
