@@ -23,6 +23,8 @@ import numpy as np
 from .se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
+#: a laser further than this from the robot frame is a malformed record, not a mount
+MAX_MOUNT_OFFSET_M = 2.0
 
 
 @dataclass
@@ -84,7 +86,13 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
-    sensor_pose = np.median(np.array(mounts), axis=0) if mounts else np.array([front_offset_m, 0.0, 0.0])
+    sensor_pose = np.array([front_offset_m, 0.0, 0.0])
+    if mounts:
+        mount = np.median(np.array(mounts), axis=0)
+        if np.hypot(mount[0], mount[1]) > MAX_MOUNT_OFFSET_M:
+            raise ValueError(f"CARMEN ROBOTLASER1 laser pose is {np.hypot(mount[0], mount[1]):.1f} m from the robot "
+                             f"pose: not a mount offset (more than {MAX_MOUNT_OFFSET_M} m)")
+        sensor_pose = mount
     stamps = np.array([s.stamp_s for s in scans])
     from_log = bool(len(stamps) < 2 or np.all(np.diff(stamps) > 0))
     if not from_log:

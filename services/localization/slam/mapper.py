@@ -166,6 +166,7 @@ class GraphSlam:
         self.last_match_ok = True
         self._unmatched_m = 0.0
         self._unmatched_rad = 0.0
+        self._last_covariance = np.linalg.inv(self._sequential_info)
         c = self.config
         self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
                                     1 / c.odom_prior_sigma_theta_rad**2])
@@ -274,9 +275,9 @@ class GraphSlam:
         return np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
 
     def match_covariance(self) -> np.ndarray:
-        """Covariance (3x3) of the latest scan's pose relative to the previous one: a scan match's, or the
-        odometry's when the match failed the quality gate."""
-        return np.linalg.inv(self._sequential_information() if not self.last_match_ok else self._sequential_info)
+        """Covariance (3x3) of the latest scan's pose relative to its keyframe: a scan match's, or the odometry's
+        over the dead-reckoned distance when matches failed the quality gate."""
+        return self._last_covariance
 
     # ---------------------------------------------------------------------------------------------- input
     def add_scan(self, stamp_s: float, odom_pose: np.ndarray, points: np.ndarray,
@@ -309,6 +310,7 @@ class GraphSlam:
         if not ok:
             self._unmatched_m += float(np.hypot(step[0], step[1]))
             self._unmatched_rad += abs(float(wrap_angle(step[2])))
+        self._last_covariance = np.linalg.inv(self._sequential_information())
         last_kf = self.n_keyframes - 1
         from_kf = between(self.graph.pose(last_kf), pose)
         moved = np.hypot(from_kf[0], from_kf[1])
