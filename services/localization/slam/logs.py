@@ -119,6 +119,21 @@ def _stamp(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
 
 
+def mount_from_transforms(laser_frame: str, fixed: dict[str, tuple[str, np.ndarray]],
+                          base_frame: str | None) -> np.ndarray:
+    """Laser pose (x, y, theta) in the robot's base frame: the fixed transforms (child -> (parent, pose)) composed
+    from ``laser_frame`` up to ``base_frame`` (or to the top of the chain when the base frame is not on it)."""
+    pose = np.zeros(3)
+    frame = laser_frame
+    seen = set()
+    while frame != base_frame and frame in fixed and frame not in seen:
+        seen.add(frame)
+        parent, step = fixed[frame]
+        pose = compose(step, pose)
+        frame = parent
+    return pose
+
+
 def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None = None) -> LaserLog:
     """Scans and odometry of a ROS 1 (or ROS 2) bag, read with ``rosbags`` (no ROS installation needed)."""
     from rosbags.highlevel import AnyReader
@@ -137,22 +152,32 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
         odom_poses: list[tuple[float, float, float]] = []
         tf_odom: list[tuple[float, float, float, float]] = []
         static: dict[str, tuple[str, np.ndarray]] = {}
+        dynamic: dict[str, tuple[str, np.ndarray]] = {}
+        base_frames: list[str] = []
         for conn, _, raw in reader.messages(connections=scan_conns + odom_conns + tf_conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn in scan_conns:
                 raw_scans.append(msg)
             elif conn in odom_conns:
                 p = msg.pose.pose
+                if not base_frames and msg.child_frame_id:
+                    base_frames.append(msg.child_frame_id.lstrip("/"))
                 odom_stamps.append(_stamp(msg.header))
                 odom_poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
             else:
                 for tf in msg.transforms:
                     t = tf.transform.translation
                     pose = np.array([t.x, t.y, _yaw(tf.transform.rotation)])
+                    child, parent = tf.child_frame_id.lstrip("/"), tf.header.frame_id.lstrip("/")
                     if conn.topic == "/tf_static":
-                        static[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), pose)
-                    elif not odom_conns and tf.header.frame_id.lstrip("/") == "odom":
-                        tf_odom.append((_stamp(tf.header), *pose))
+                        static[child] = (parent, pose)
+                    elif parent == "odom":
+                        if not odom_conns:
+                            tf_odom.append((_stamp(tf.header), *pose))
+                            if not base_frames:
+                                base_frames.append(child)
+                    elif child not in dynamic:
+                        dynamic[child] = (parent, pose)  # a mount some bags publish on /tf instead of /tf_static
     if not odom_stamps:
         if not tf_odom:
             raise ValueError(f"{path}: no nav_msgs/Odometry topic and no odom transform in /tf")
@@ -164,7 +189,7 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
     o_stamps = o_stamps[order]
     o_poses = np.asarray(odom_poses, float)[order]
     laser_frame = raw_scans[0].header.frame_id.lstrip("/") if raw_scans else ""
-    sensor_pose = static[laser_frame][1] if laser_frame in static else np.zeros(3)
+    sensor_pose = mount_from_transforms(laser_frame, {**dynamic, **static}, base_frames[0] if base_frames else None)
     scans = []
     for msg in raw_scans:
         stamp = _stamp(msg.header)

@@ -1,14 +1,14 @@
 """Graph SLAM front- and back-end: feed scans with odometry, get the optimised trajectory and map.
 
 Front end: every scan is matched against a local submap built from the last keyframes (``matcher.refine`` on a
-multi-resolution likelihood grid, with the odometry prediction as a prior whose spread grows with the motion:
-σ = σ₀ + k·‖Δ‖). A poor match or a fast turn triggers a correlative search over a window scaled to the odometry
-increment (x, y: ``rescue_window_xy_m + rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad +
-0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``), so a wheel slip or an odometry jump is searched for, not trusted. A match
-whose score stays below ``min_match_score`` fails the quality gate: the pose falls back to the odometry prediction
-and the keyframe edge gets the odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``,
-σ_θ = ``fallback_sigma_theta_rad + odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a
-scan match's, so the back end knows that stretch is only dead-reckoned.
+multi-resolution likelihood grid, with the odometry prediction as a prior). A poor match or a fast turn triggers a
+correlative search over a window scaled to the odometry increment (x, y: ``rescue_window_xy_m +
+rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad + 0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``; its candidates
+are refined under an odometry prior of spread σ = σ₀ + k·‖Δt‖), so a wheel slip or an odometry jump is searched
+for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: the pose falls back
+to the odometry prediction and the keyframe edge gets the odometry's covariance (σ_xy = ``fallback_sigma_xy_m +
+odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad + odom_sigma_theta_per_m·d`` over the unmatched distance
+d) instead of a scan match's, so the back end knows that stretch is only dead-reckoned.
 
 A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous keyframe by the matched
 relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path); it is matched
@@ -55,7 +55,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     min_match_score: float = 0.35
     odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
-    rescue_below_score: float = 0.5
+    rescue_below_score: float = 0.35
     rescue_window_xy_m: float = 0.3
     rescue_window_per_m: float = 1.0
     rescue_window_theta_rad: float = 0.25
@@ -239,15 +239,14 @@ class GraphSlam:
         if self._submap is None:
             self._rebuild_submap(predicted)
         assert self._submap is not None
-        prior = self._motion_prior(step)
         turn_rad = float(wrap_angle(step[2]))
         dist = float(np.hypot(step[0], step[1]))
-        result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=prior)
+        result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
         if result.score >= max(c.min_match_score, c.rescue_below_score) and abs(turn_rad) < c.fast_turn_rad:
             return result.pose, True
         # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search a window scaled to
-        # the odometry increment; candidates are refined with the prior centred on them (only to hold the
-        # directions the scan leaves free), so a wrong prediction cannot pull the match back
+        # the odometry increment; candidates are refined with a prior whose spread grows with the increment, so
+        # a large (possibly wrong) odometry step cannot pull the match back
         window_theta = c.rescue_window_theta_rad + 0.5 * abs(turn_rad) + c.rescue_theta_per_m * dist
         window_xy = c.rescue_window_xy_m + c.rescue_window_per_m * dist
         candidates = correlative_search(self._submap.levels[-1], points, predicted,
@@ -255,7 +254,7 @@ class GraphSlam:
                                         theta_step_rad=0.02, n_best=3)
         best = result
         for _, pose in candidates:
-            trial = refine(self._submap, points, pose, prior_pose=pose, prior_information=self._odom_prior)
+            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step))
             if trial.score > best.score + 0.02:
                 best = trial
         if best.score >= c.min_match_score:
