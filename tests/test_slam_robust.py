@@ -122,6 +122,7 @@ def test_pending_closure_needs_a_consistent_partner():
     assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
 
 
+@pytest.mark.timeout(900)  # two SLAM runs over 400 scans: ~20 s of CPU
 def test_mount_offset_does_not_change_the_result(logs_dir):
     """The same scans re-expressed for a laser 0.25 m ahead and 0.05 m left of the robot frame, and the
     trajectory of the laser (what the relations measure) stays the same."""

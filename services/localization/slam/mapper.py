@@ -5,10 +5,11 @@ multi-resolution likelihood grid, with the odometry prediction as a prior). A po
 correlative search over a window scaled to the odometry increment (x, y: ``rescue_window_xy_m +
 rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad + 0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``; its candidates
 are refined under an odometry prior of spread σ = σ₀ + k·‖Δt‖), so a wheel slip or an odometry jump is searched
-for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: the pose falls back
-to the odometry prediction and the keyframe edge gets the odometry's covariance (σ_xy = ``fallback_sigma_xy_m +
-odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad + odom_sigma_theta_per_m·d`` over the unmatched distance
-d) instead of a scan match's, so the back end knows that stretch is only dead-reckoned.
+for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: below
+``weak_match_score`` the pose falls back to the odometry prediction, and in both cases the keyframe edge gets the
+odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad +
+odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a scan match's, so the back end knows that
+stretch is only dead-reckoned.
 
 A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous keyframe by the matched
 relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path); it is matched
@@ -53,13 +54,14 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     keyframe_angle_rad: float = 0.2
     submap_keyframes: int = 20
     min_match_score: float = 0.35
+    weak_match_score: float = 0.175
     odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
     rescue_below_score: float = 0.35
     rescue_window_xy_m: float = 0.3
-    rescue_window_per_m: float = 1.0
+    rescue_window_per_m: float = 0.15
     rescue_window_theta_rad: float = 0.25
-    rescue_theta_per_m: float = 0.2
+    rescue_theta_per_m: float = 0.05
     fast_turn_rad: float = 0.15
     odom_prior_sigma_xy_per_m: float = 0.1
     odom_prior_sigma_theta_per_m: float = 0.05
@@ -163,15 +165,16 @@ class GraphSlam:
         self.loop_checks = 0
         self.rescued_matches = 0
         self.fallback_matches = 0
+        self.weak_matches = 0
         self.last_match_ok = True
         self._unmatched_m = 0.0
         self._unmatched_rad = 0.0
-        self._last_covariance = np.linalg.inv(self._sequential_info)
         c = self.config
         self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
                                     1 / c.odom_prior_sigma_theta_rad**2])
         self._sequential_info = np.diag([1 / c.sequential_sigma_xy_m**2, 1 / c.sequential_sigma_xy_m**2,
                                          1 / c.sequential_sigma_theta_rad**2])
+        self._last_covariance = np.linalg.inv(self._sequential_info)
         self._loop_info = np.diag([1 / c.loop_sigma_xy_m**2, 1 / c.loop_sigma_xy_m**2,
                                    1 / c.loop_sigma_theta_rad**2])
 
@@ -261,6 +264,9 @@ class GraphSlam:
             if best is not result:
                 self.rescued_matches += 1
             return best.pose, True
+        if best.score >= c.weak_match_score:  # weak but usable: kept, with the odometry's covariance
+            self.weak_matches += 1
+            return best.pose, False
         self.fallback_matches += 1
         return predicted, False
 
