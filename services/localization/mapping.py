@@ -77,7 +77,8 @@ class MappingNode:
         self.pending_scan: LaserScan | None = None
         self._newest_scan: LaserScan | None = None
         self.stats: dict[str, float] = {"scans": 0, "processed": 0, "skipped": 0, "bad_scans": 0,
-                                        "keyframes": 0, "loop_closures": 0, "cpu_ms_per_processed_scan": 0.0,
+                                        "keyframes": 0, "loop_closures": 0, "loop_closures_rejected": 0,
+                                        "scan_match_fallbacks": 0, "cpu_ms_per_processed_scan": 0.0,
                                         "cpu_ms_max": 0.0, "render_ms": 0.0}
         self._cpu_total_s = 0.0
         self._map_published_at = -math.inf
@@ -168,6 +169,8 @@ class MappingNode:
             s["processed"] = self.mapper.processed
             s["keyframes"] = self.mapper.slam.n_keyframes
             s["loop_closures"] = len(self.mapper.slam.loop_closures)
+            s["loop_closures_rejected"] = len(self.mapper.slam.rejected_closures)
+            s["scan_match_fallbacks"] = self.mapper.slam.fallback_matches
             s["cpu_ms_per_processed_scan"] = round(1e3 * self._cpu_total_s / self.mapper.processed, 2)
             s["cpu_ms_max"] = round(max(s["cpu_ms_max"], 1e3 * cpu), 2)
             self._map_dirty = True
@@ -182,9 +185,12 @@ class MappingNode:
         p = self.mapper.pose
         if p is None:
             return
+        slam = self.mapper.slam
+        # a scan that failed the match-quality gate was placed by odometry: report the odometry's spread
+        covariance = SLAM_COVARIANCE if slam.last_match_ok else [float(v) for v in slam.match_covariance().ravel()]
         self.out.pose.put(PoseWithCovariance(stamp=stamp, frame="map",
                                              pose=Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])),
-                                             covariance=list(SLAM_COVARIANCE)))
+                                             covariance=covariance))
 
     def _publish_tf(self, stamp: float) -> None:
         m = self.mapper.map_odom
