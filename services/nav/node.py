@@ -21,6 +21,7 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from services.common.clock import Rate
+from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.node import QueryError
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
@@ -117,9 +118,12 @@ async def run(ctx: ServiceContext) -> None:
             log.warning("ignored map: %dx%d cells with %d values, resolution %s", msg.width, msg.height, data.size,
                         msg.resolution)
             return
-        if abs(msg.origin.theta) > 1e-6:
-            log.warning("map origin has a yaw of %.3f rad; nav assumes an axis-aligned map", msg.origin.theta)
-        nav.set_map(data.reshape(msg.height, msg.width), msg.resolution, msg.origin.x, msg.origin.y)
+        grid, ox, oy = axis_aligned(data.reshape(msg.height, msg.width), msg.resolution,
+                                    (msg.origin.x, msg.origin.y, msg.origin.theta), fill=-1)
+        if abs(msg.origin.theta) > YAW_EPS_RAD:
+            log.info("map origin has a yaw of %.4f rad: costmaps use it resampled onto %dx%d axis-aligned cells",
+                     msg.origin.theta, grid.shape[1], grid.shape[0])
+        nav.set_map(grid, msg.resolution, ox, oy)
         log.info("map %dx%d at %.3f m", msg.width, msg.height, msg.resolution)
 
     last_scan = [-math.inf]
