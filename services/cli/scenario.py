@@ -663,6 +663,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     from services.cli.scenario_generate import add_parser as add_generate
 
     add_generate(ssub)
+    from services.cli.scenario_suite import add_parser as add_suite
+
+    add_suite(ssub)
 
 
 def run(args: argparse.Namespace) -> int:
