@@ -23,6 +23,8 @@ class CostmapConfig(msgspec.Struct, forbid_unknown_fields=True):
     lethal_threshold: int = 65
     track_unknown: bool = True
     size_m: float = 5.0  # local (rolling) window only
+    # global only: scan marks this close to a wall of the static map are that wall seen again (not applied)
+    static_wall_tolerance_m: float = 0.0
 
 
 class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -77,6 +79,7 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     recovery_timeout_s: float = 20.0
     # inputs
     pose_timeout_s: float = 2.0
-    global_costmap: CostmapConfig = msgspec.field(default_factory=lambda: CostmapConfig(update_frequency_hz=1.0))
+    global_costmap: CostmapConfig = msgspec.field(
+        default_factory=lambda: CostmapConfig(update_frequency_hz=1.0, static_wall_tolerance_m=0.15))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)
     dwa: DwaConfig = msgspec.field(default_factory=DwaConfig)

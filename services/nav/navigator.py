@@ -120,7 +120,8 @@ class Navigator:
             return StaticLayer(cc.lethal_threshold, cc.track_unknown), obs, infl
 
         gs, go, gi = costmap_layers(config.global_costmap)
-        self.global_costmap = GlobalCostmap(Costmap2D.empty(1, 1, 0.05), gs, go, gi, self.footprint)
+        self.global_costmap = GlobalCostmap(Costmap2D.empty(1, 1, 0.05), gs, go, gi, self.footprint,
+                                            config.global_costmap.static_wall_tolerance_m)
         ls, lo, li = costmap_layers(config.local_costmap)
         self.local_costmap = RollingCostmap(config.local_costmap.size_m, 0.05, ls, lo, li, self.footprint)
         self.has_map = False
