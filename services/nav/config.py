@@ -45,6 +45,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     allow_unknown: bool = False
     path_spacing_m: float = 0.05
     min_replan_interval_s: float = 0.5  # immediate replans (blocked path) at most this often
+    # periodic replans take at most this share of the time (a search of d s is followed by d (1 - duty) / duty)
+    planner_max_duty: float = 0.25
     # goal checker (0: the robot's Table 2 tolerances)
     xy_goal_tolerance_m: float = 0.0
     yaw_goal_tolerance_rad: float = 0.0

@@ -53,6 +53,7 @@ class PlanRequest:
     start: tuple[float, float, float]
     goal: tuple[float, float, float]
     goal_seq: int
+    requested_at: float | None = None  # controller time of the snapshot (None: unknown, the search counts as free)
 
 
 @dataclass
@@ -61,6 +62,7 @@ class PlanOutcome:
     error: str
     goal_seq: int
     expanded: int = 0
+    requested_at: float | None = None
 
 
 @dataclass
@@ -72,6 +74,7 @@ class GoalState:
     path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     path_index: int = 0
     last_plan_at: float = -math.inf
+    last_plan_duration_s: float = 0.0
     plan_now: bool = True
     planning: bool = False
     phase: str = "planning"
@@ -331,13 +334,18 @@ class Navigator:
     # ------------------------------------------------------------------ planning
 
     def plan_due(self, now: float) -> bool:
-        """Whether a (re)plan should start now: a new goal, the planner period, or a blocked path."""
+        """Whether a (re)plan should start now: a new goal or a blocked path at once; otherwise every planner
+        period, but no more than ``planner_max_duty`` of the time: on a large map a search that takes d seconds
+        is followed by at least d (1 - duty) / duty of rest, so the search (pure Python, holding the interpreter)
+        does not starve the controller."""
         g = self.goal
         if g is None or self.state in TERMINAL or g.planning or g.phase == "fine" or g.recovery:
             return False
-        return g.plan_now or now - g.last_plan_at >= 1.0 / self.config.planner_frequency_hz
+        duty = min(max(self.config.planner_max_duty, 1e-3), 1.0)
+        period = max(1.0 / self.config.planner_frequency_hz, g.last_plan_duration_s * (1.0 - duty) / duty)
+        return g.plan_now or now - g.last_plan_at >= period
 
-    def make_request(self, pose: tuple[float, float, float]) -> PlanRequest:
+    def make_request(self, pose: tuple[float, float, float], now: float | None = None) -> PlanRequest:
         """Snapshot what the search needs (called on the loop thread; the search may run elsewhere)."""
         cm = self.global_costmap
         cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m,
@@ -345,7 +353,7 @@ class Navigator:
         snapshot = Costmap2D(cm.master.resolution, cm.master.origin_x, cm.master.origin_y, cost)
         assert self.goal is not None
         self.goal.planning = True
-        return PlanRequest(cost, snapshot, pose, self.goal.pose, self.goal.seq)
+        return PlanRequest(cost, snapshot, pose, self.goal.pose, self.goal.seq, now)
 
     def compute_plan(self, req: PlanRequest) -> PlanOutcome:
         cm = req.costmap
@@ -353,10 +361,10 @@ class Navigator:
         gi, gj = cm.world_to_map(req.goal[0], req.goal[1])
         res: PlanResult = self.planner.plan(req.cost, (int(si), int(sj)), (int(gi), int(gj)), cm.resolution)
         if not res.ok:
-            return PlanOutcome(np.zeros((0, 3)), res.error, req.goal_seq, res.expanded)
+            return PlanOutcome(np.zeros((0, 3)), res.error, req.goal_seq, res.expanded, req.requested_at)
         cells = smooth_cells(req.cost, res.cells)
         path = cells_to_path(cm, cells, req.start[:2], req.goal, self.config.path_spacing_m)
-        return PlanOutcome(path, "", req.goal_seq, res.expanded)
+        return PlanOutcome(path, "", req.goal_seq, res.expanded, req.requested_at)
 
     def apply_plan(self, now: float, out: PlanOutcome, pose: tuple[float, float, float]) -> None:
         g = self.goal
@@ -365,6 +373,7 @@ class Navigator:
         g.planning = False
         g.plan_now = False
         g.last_plan_at = now
+        g.last_plan_duration_s = max(now - out.requested_at, 0.0) if out.requested_at is not None else 0.0
         if out.error:
             g.last_error = f"planning failed: {out.error}"
             if len(g.path) == 0 or g.phase == "planning" or self._path_blocked():

@@ -341,7 +341,7 @@ async def run(ctx: ServiceContext) -> None:
         if active and pose is not None:
             stale = now - tracker.last_update() > cfg.pose_timeout_s
             if (plan_task is None or plan_task.done()) and nav.plan_due(now):
-                plan_task = node.spawn(plan_job(nav.make_request(pose)))
+                plan_task = node.spawn(plan_job(nav.make_request(pose, now)))
             if stale:
                 vx, vy, wz = 0.0, 0.0, 0.0
                 nav.cmd = (0.0, 0.0, 0.0)
