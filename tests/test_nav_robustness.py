@@ -198,3 +198,55 @@ def test_a_doorway_stays_open_when_its_walls_are_seen_displaced() -> None:
     nav.add_scan(obs)
     nav.update_costmaps((5.0, 1.5, 1.57))
     assert "no path" in plan()
+
+
+# --------------------------------------------------------------------------- escapes
+
+
+def test_escapes_climb_a_ladder_and_waiting_lets_a_blocker_pass() -> None:
+    from tests.test_nav_navigator import drive, make
+
+    nav, sim = make((6.0, 3.5, 0.0))
+    blocker = [8.0, 1.6, 8.3, 4.9]  # across the corridor, seen only by the laser; gone while nav waits
+    sim.add_box(blocker)
+    nav.update_costmaps(tuple(sim.pose))
+    for _ in range(3):
+        nav.add_scan(sim.scan())
+    nav.update_costmaps(tuple(sim.pose))
+    ok, _, _ = nav.start_goal(0.0, (10.5, 3.5, 0.0))
+    assert ok
+    goal = nav.goal
+    removed = []
+
+    def take_away(s) -> None:  # noqa: ANN001
+        if not removed and goal.recovery == "wait":
+            occ, x0, y0 = s.occ, s.x0, s.y0
+            h, w = occ.shape
+            gx, gy = np.meshgrid(x0 + (np.arange(w) + 0.5) * 0.05, y0 + (np.arange(h) + 0.5) * 0.05)
+            occ[(gx >= blocker[0]) & (gx <= blocker[2]) & (gy >= blocker[1]) & (gy <= blocker[3])] = 0
+            removed.append(s.t)
+
+    # until it drives on a path through where the blocker was
+    drive(nav, sim, 300.0, on_step=take_away,
+          stop_when=lambda: bool(removed) and nav.state == "driving" and len(nav.path) > 0 and sim.pose[0] > 7.0)
+    assert nav.state == "driving", (nav.state, nav.error, goal.recovery_log)
+    assert not sim.collided and goal.path[-1][0] == pytest.approx(10.5)
+    assert goal.recovery_log[0] == "clear_costmaps" and "wait" in goal.recovery_log
+    assert len(set(goal.recovery_log)) >= 2  # never the same escape over and over
+
+
+def test_a_new_stuck_episode_starts_at_the_bottom_of_the_ladder() -> None:
+    from services.nav.navigator import PLAN_LADDER
+
+    nav = Navigator(NavConfig(max_recoveries=2), RobotSpec())
+    nav.set_map(np.zeros((100, 400), dtype=np.int8), 0.05, 0.0, 0.0)
+    assert nav.start_goal(0.0, (18.0, 2.5, 0.0))[0]
+    g = nav.goal
+    nav._start_recovery(1.0, (1.0, 2.5, 0.0), "planning failed: no path")
+    nav._start_recovery(2.0, (1.1, 2.5, 0.0), "planning failed: no path")
+    assert g.recovery_log == list(PLAN_LADDER[:2]) and nav.state == "recovering"
+    nav._start_recovery(3.0, (4.0, 2.5, 0.0), "no valid trajectory")  # 3 m on: a new episode
+    assert g.recovery_log[-1] == "clear_costmaps" and g.recoveries == 3
+    nav._start_recovery(4.0, (4.1, 2.5, 0.0), "no valid trajectory")
+    nav._start_recovery(5.0, (4.1, 2.5, 0.0), "no valid trajectory")
+    assert nav.state == "failed" and "after 2 recoveries" in nav.error

@@ -73,7 +73,9 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     required_movement_angle_rad: float = 0.5
     movement_time_allowance_s: float = 15.0
     # recoveries
-    max_recoveries: int = 4
+    max_recoveries: int = 6  # escapes per stuck episode (navigator docstring)
+    recovery_reset_distance_m: float = 2.0
+    recovery_wait_s: float = 5.0
     controller_patience_s: float = 3.0
     spin_angle_rad: float = 1.57
     backup_distance_m: float = 0.25

@@ -13,8 +13,12 @@ Control phases of a goal:
 4. fine approach within ``fine_approach_distance_m``: a P-controller on the goal pose (holonomic: x, y and theta
    at once), speeds limited by sqrt(2 a d) so it stops without overshoot, until the errors are below the fine
    targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached).
-Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) run the
-recoveries in turn (clear costmaps, spin, back up) up to ``max_recoveries``, then the goal fails with the reason.
+Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) climb a
+ladder of escapes, each of which changes something: for a failed search clear the costmaps, wait (a person or cart
+may move away), replan with relaxed costs (no clearance preference: a tighter route), spin (look around), back up;
+for a stuck controller clear, back up, spin, relax, wait. After ``max_recoveries`` steps of one stuck episode the goal
+fails with the reason; once the robot has moved ``recovery_reset_distance_m`` from where the episode began, the next
+failure starts a new episode at the bottom of the ladder (a long route may meet several unrelated obstacles).
 """
 
 from __future__ import annotations
@@ -43,7 +47,10 @@ from services.nav.costmap import (
 from services.nav.dwa import DwaPlanner, Limits, wrap
 
 TERMINAL = ("succeeded", "failed", "canceled")
-RECOVERIES = ("clear_costmaps", "spin", "backup")
+#: escapes, in the order tried, when the search failed and when the controller is stuck
+PLAN_LADDER = ("clear_costmaps", "wait", "relax_costs", "spin", "backup")
+CONTROL_LADDER = ("clear_costmaps", "backup", "spin", "relax_costs", "wait")
+RECOVERIES = tuple(dict.fromkeys(PLAN_LADDER + CONTROL_LADDER))
 
 
 @dataclass
@@ -88,7 +95,11 @@ class GoalState:
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
     stuck_since: float | None = None
-    recoveries: int = 0
+    recoveries: int = 0  # escapes used for this goal
+    ladder_step: int = 0  # escapes used in the current stuck episode
+    episode_pose: tuple[float, float, float] | None = None  # where that episode began
+    relaxed: bool = False  # plan without the clearance preference (an escape)
+    recovery_log: list[str] = field(default_factory=list)  # the escapes used, in order
     recovery: str = ""
     recovery_start: tuple[float, float, float] | None = None
     recovery_at: float = 0.0
@@ -348,8 +359,9 @@ class Navigator:
     def make_request(self, pose: tuple[float, float, float], now: float | None = None) -> PlanRequest:
         """Snapshot what the search needs (called on the loop thread; the search may run elsewhere)."""
         cm = self.global_costmap
-        cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m,
-                             self.config.clearance_m)
+        assert self.goal is not None
+        clearance = 0.0 if self.goal.relaxed else self.config.clearance_m
+        cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m, clearance)
         snapshot = Costmap2D(cm.master.resolution, cm.master.origin_x, cm.master.origin_y, cost)
         assert self.goal is not None
         self.goal.planning = True
@@ -607,11 +619,19 @@ class Navigator:
         g = self.goal
         assert g is not None
         g.last_error = reason
-        if g.recoveries >= self.config.max_recoveries:
-            self._finish("failed", f"{reason} (after {g.recoveries} recoveries)", now, pose)
+        ep = g.episode_pose
+        if ep is not None and math.hypot(pose[0] - ep[0], pose[1] - ep[1]) >= self.config.recovery_reset_distance_m:
+            g.ladder_step, g.relaxed, g.episode_pose = 0, False, None  # a new, unrelated episode
+        if g.ladder_step >= self.config.max_recoveries:
+            self._finish("failed", f"{reason} (after {g.ladder_step} recoveries)", now, pose)
             return
-        g.recovery = RECOVERIES[g.recoveries % len(RECOVERIES)]
+        ladder = PLAN_LADDER if reason.startswith("planning failed") else CONTROL_LADDER
+        g.recovery = ladder[g.ladder_step % len(ladder)]
+        if g.ladder_step == 0:
+            g.episode_pose = pose
+        g.ladder_step += 1
         g.recoveries += 1
+        g.recovery_log.append(g.recovery)
         g.recovery_start = pose
         g.recovery_at = now
         g.recovery_turned = 0.0
@@ -636,6 +656,14 @@ class Navigator:
             self.clear_costmaps()
             self.update_costmaps(pose)
             self._end_recovery(now, pose)
+            return (0.0, 0.0, 0.0)
+        if g.recovery == "relax_costs":
+            g.relaxed = True
+            self._end_recovery(now, pose)
+            return (0.0, 0.0, 0.0)
+        if g.recovery == "wait":
+            if now - g.recovery_at >= self.config.recovery_wait_s:
+                self._end_recovery(now, pose)
             return (0.0, 0.0, 0.0)
         if now - g.recovery_at > self.config.recovery_timeout_s:
             self._end_recovery(now, pose)
