@@ -74,7 +74,8 @@ def load_suite(path: Path, maps_dir: Path | None) -> tuple[Suite, list[str]]:
                  float(data.get("speed", 4.0))), skipped
 
 
-def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float, extra_set: list[str]) -> dict:
+def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float, extra_set: list[str],
+            max_leg_m: float = 20.0) -> dict:
     """Generate and drive every seed's goals on one map; the map's row with its runs."""
     from services.cli.stack_process import Stack
 
@@ -84,7 +85,7 @@ def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float,
         try:
             files.append(generate_file(run_dir / f"{entry.name}_s{seed}.toml", map_yaml=entry.map_yaml,
                                        world=entry.world, n_goals=suite.goals, seed=seed, speed=suite.speed,
-                                       name=f"{entry.name}_s{seed}"))
+                                       name=f"{entry.name}_s{seed}", max_leg_m=max_leg_m))
         except GenerateError as exc:
             row["note"] = f"no goals: {exc}"
             return row
@@ -158,6 +159,8 @@ def add_parser(ssub: argparse._SubParsersAction) -> None:
     sp.add_argument("--seeds", help="comma-separated seeds (override the file)")
     sp.add_argument("--goals", type=int, help="goals per seed and map (override the file)")
     sp.add_argument("--speed", type=float, help="sim speed factor (override the file)")
+    sp.add_argument("--max-leg", type=float, default=20.0,
+                    help="m in a straight line between consecutive goals at most (default %(default)s)")
     sp.add_argument("--goal-timeout", type=float, default=600.0, help="sim seconds per goal (default %(default)s)")
     sp.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="stack config override")
     sp.add_argument("--json", help="write the rows, bench rows and every goal's result to this file")
@@ -192,7 +195,7 @@ def run_suite(args: argparse.Namespace) -> int:
                                                    "maps": raw, "skipped": skipped}, indent=1, default=str))
 
     for entry in suite.maps:
-        row = run_map(entry, suite, run_dir, args.goal_timeout, args.set)
+        row = run_map(entry, suite, run_dir, args.goal_timeout, args.set, getattr(args, "max_leg", 20.0))
         raw.append(row)
         all_runs.extend(row["runs"])
         rows.append(row_figures(row))

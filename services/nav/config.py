@@ -83,6 +83,9 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     recovery_timeout_s: float = 20.0
     # inputs
     pose_timeout_s: float = 2.0
+    # a localization correction larger than this clears the obstacle layers (their marks used the wrong pose)
+    clear_on_pose_jump_m: float = 0.5
+    clear_on_pose_jump_rad: float = 0.35
     global_costmap: CostmapConfig = msgspec.field(
         default_factory=lambda: CostmapConfig(update_frequency_hz=1.0, static_wall_tolerance_m=0.15))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)

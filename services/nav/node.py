@@ -185,7 +185,21 @@ async def run(ctx: ServiceContext) -> None:
 
     node.subscribe("map", on_map, latched=True)
     node.subscribe("odom", tracker.on_odom)
-    node.subscribe("tf/map_odom", tracker.on_tf, latched=True)  # a restarted nav knows the pose at once
+    def on_tf(msg: m.Transform2D) -> None:
+        before = tracker.current()
+        tracker.on_tf(msg)
+        after = tracker.current()
+        if before is None or after is None:
+            return
+        jump_m = math.hypot(after[0] - before[0], after[1] - before[1])
+        jump_rad = abs(math.remainder(after[2] - before[2], 2 * math.pi))
+        if jump_m > cfg.clear_on_pose_jump_m or jump_rad > cfg.clear_on_pose_jump_rad:
+            # the marks so far were placed with a pose localization now says was wrong (relocalized, kidnapped)
+            nav.clear_costmaps()
+            log.info("pose jumped %.2f m, %.2f rad (localization corrected itself): obstacle layers cleared",
+                     jump_m, jump_rad)
+
+    node.subscribe("tf/map_odom", on_tf, latched=True)  # a restarted nav knows the pose at once
     loc_state = {"answered": False}
 
     def on_pose(msg: m.PoseWithCovariance) -> None:
