@@ -91,7 +91,6 @@ class GoalState:
     loc_updated: bool = False
     loc_updated_at: float = 0.0
     loc_updates: int = 0
-    xy_latched: bool = False
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
     stuck_since: float | None = None
@@ -540,9 +539,9 @@ class Navigator:
         ex, ey = g.pose[0] - pose[0], g.pose[1] - pose[1]
         eth = float(wrap(g.pose[2] - pose[2]))
         dxy = math.hypot(ex, ey)
-        if dxy < self.xy_tol:
-            g.xy_latched = True
-        within_tol = (dxy < self.xy_tol or g.xy_latched and dxy < 2 * self.xy_tol) and abs(eth) < self.yaw_tol
+        # success is claimed only with the estimate inside the tolerance itself (no latch at twice the tolerance:
+        # a robot judged by where it is must not be called arrived 0.09 m off)
+        within_tol = dxy < self.xy_tol and abs(eth) < self.yaw_tol
         fine_done = dxy < cfg.fine_xy_target_m and abs(eth) < cfg.fine_yaw_target_rad
         timed_out = now - g.fine_since > cfg.fine_timeout_s
         self.state = "rotating" if dxy < self.xy_tol else "driving"
