@@ -23,7 +23,7 @@ class CostmapConfig(msgspec.Struct, forbid_unknown_fields=True):
     lethal_threshold: int = 65
     track_unknown: bool = True
     size_m: float = 5.0  # local (rolling) window only
-    # global only: scan marks this close to a wall of the static map are that wall seen again (not applied)
+    # scan marks this close to a wall of the static map are that wall seen again, not applied (global: 0.15)
     static_wall_tolerance_m: float = 0.0
 
 
@@ -72,10 +72,10 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     required_movement_radius_m: float = 0.3
     required_movement_angle_rad: float = 0.5
     movement_time_allowance_s: float = 15.0
-    # recoveries
-    max_recoveries: int = 6  # escapes per stuck episode (navigator docstring)
-    recovery_reset_distance_m: float = 2.0
-    recovery_wait_s: float = 5.0
+    # recoveries: escapes per stuck episode (the ladders in navigator.py)
+    max_recoveries: int = 6
+    recovery_reset_distance_m: float = 2.0  # moved this far from where an episode began: the next one starts afresh
+    recovery_wait_s: float = 5.0  # the "wait" escape stands still this long
     controller_patience_s: float = 3.0
     spin_angle_rad: float = 1.57
     backup_distance_m: float = 0.25
