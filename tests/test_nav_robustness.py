@@ -112,9 +112,15 @@ def test_shipped_site_worlds_give_goals_and_the_suite_lists_them() -> None:
 
 
 def _leg(points: list[tuple[float, float]]) -> Leg:
+    """Ground truth at t = 0, 1, ...; estimates between the samples, off by 0.01, 0.03, 0.02 m across the path."""
     leg = Leg(1, Goal("1", (0.0, 0.0, 0.0)), 0.0)
     leg.trace = [(float(k), x, y, 0.0, 0.0, 0.0, 0.0) for k, (x, y) in enumerate(points)]
-    leg.loc_errors_m = [0.01, 0.03, 0.02]
+    if len(points) > 1:
+        (x0, y0), (x1, y1) = points[0], points[1]
+        ux, uy = (x1 - x0) / math.hypot(x1 - x0, y1 - y0), (y1 - y0) / math.hypot(x1 - x0, y1 - y0)
+        for t, off in ((0.25, 0.01), (0.5, 0.03), (0.75, 0.02)):
+            leg.estimates.append((t, x0 + t * (x1 - x0) - uy * off, y0 + t * (y1 - y0) + ux * off))
+        leg.estimates.append((7.0, 99.0, 99.0))  # after the leg's truth: not matched
     return leg
 
 

@@ -27,8 +27,8 @@ localization told so. A goal counts as reached when nav reports ``succeeded``; t
 ground-truth error is within the robot's goal tolerance (Table 2: 0.05 m, 0.05 rad), whatever nav claimed; a goal
 nav reports ``succeeded`` outside it is printed and counted. JSON: ``{"runs": [{"run": 1, "goals": [{"id",
 "target", "reached", "claimed", "nav_error", "final", "error", "time_s", "recoveries", "collisions", "driven_m",
-"loc_error_max_m", "loc_error_rms_m"}]}]}`` (localization error: |estimate - truth| at every ground-truth sample of
-the leg).
+"loc_error_max_m", "loc_error_rms_m"}]}]}`` (localization error: |estimate - truth| at every odometry stamp of the
+leg, the truth interpolated to that stamp).
 
 With ``[mapping]`` (the paper's mapping workflow, services/cli/scenario_mapping.py) the stack starts in mapping mode
 (``zagv up --mapping``, SLAM's map frame and the simulated robot both at ``start``); the simulated operator jogs the
@@ -278,8 +278,22 @@ class Leg:
     final_plan: np.ndarray | None = None
     obstacles: list[tuple[float, float, float, float]] = field(default_factory=list)
     trace: list[tuple[float, float, float, float, float, float, float]] = field(default_factory=list)
-    #: |localization estimate - ground truth| (m) at every ground-truth sample of the leg
-    loc_errors_m: list[float] = field(default_factory=list)
+    #: the pose nav drives on (map->odom composed with odometry) at every odometry stamp of the leg: (t, x, y)
+    estimates: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def localization_errors_m(leg: Leg) -> np.ndarray:
+    """|estimate - ground truth| (m) at each estimate's stamp, the truth interpolated between its samples there
+    (matched in sim time, so the lag of the messages under load is not counted as error)."""
+    tr = np.asarray(leg.trace, dtype=float).reshape(-1, 7)
+    est = np.asarray(leg.estimates, dtype=float).reshape(-1, 3)
+    if len(tr) < 2 or not len(est):
+        return np.zeros(0)
+    order = np.argsort(tr[:, 0], kind="stable")
+    t, x, y = tr[order, 0], tr[order, 1], tr[order, 2]
+    inside = (est[:, 0] >= t[0]) & (est[:, 0] <= t[-1])
+    e = est[inside]
+    return np.hypot(e[:, 1] - np.interp(e[:, 0], t, x), e[:, 2] - np.interp(e[:, 0], t, y))
 
 
 def _passes_around(poses: np.ndarray, rects: list[tuple[float, float, float, float]], near_m: float = 1.5) -> bool:
@@ -327,6 +341,9 @@ class Client:
     def _on_odom(self, msg: m.Odometry) -> None:
         self.odom_count += 1
         self.odom = (msg.pose.x, msg.pose.y, msg.pose.theta)
+        est = self.estimate()
+        if self.leg is not None and est is not None:
+            self.leg.estimates.append((msg.stamp, est[0], est[1]))
 
     def _on_tf(self, msg: m.Transform2D) -> None:
         self.map_odom = (msg.x, msg.y, msg.theta)
@@ -365,9 +382,6 @@ class Client:
         if self.leg is not None:
             p, v = msg.pose, msg.twist
             self.leg.trace.append((msg.stamp, p.x, p.y, p.theta, v.vx, v.vy, v.wz))
-            est = self.estimate()
-            if est is not None:
-                self.leg.loc_errors_m.append(math.hypot(est[0] - p.x, est[1] - p.y))
         self.truth_changed.set()
 
     def _on_status(self, msg: m.NavStatus) -> None:
@@ -443,7 +457,7 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
               yaw_tol_rad: float) -> None:
     """Fill a goal's result: ``reached`` by the ground truth (|error xy| < xy_tol_m and |error theta| <
     yaw_tol_rad), whatever nav ``claimed``; the leg's collisions, recoveries, driven distance (ground truth) and
-    the max and RMS of |localization estimate - truth| over the leg."""
+    the max and RMS of |localization estimate - truth| over the leg (``localization_errors_m``)."""
     result["claimed"] = state
     result["nav_error"] = nav_error
     result["collisions"] = collisions
@@ -451,8 +465,8 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
     result["reached"] = bool(e[0] is not None and math.hypot(e[0], e[1]) < xy_tol_m and abs(e[2]) < yaw_tol_rad)
     tr = np.asarray(leg.trace, dtype=float).reshape(-1, 7)
     result["driven_m"] = round(float(np.hypot(*np.diff(tr[:, 1:3], axis=0).T).sum()), 3) if len(tr) > 1 else 0.0
-    if leg.loc_errors_m:
-        le = np.asarray(leg.loc_errors_m)
+    le = localization_errors_m(leg)
+    if len(le):
         result["loc_error_max_m"] = round(float(le.max()), 4)
         result["loc_error_rms_m"] = round(float(np.sqrt(np.mean(le ** 2))), 4)
 
@@ -465,8 +479,15 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     placed: list[str] = []
     req = m.GoalRequest(pose=m.Pose2D(x=goal.pose[0], y=goal.pose[1], theta=goal.pose[2]),
                         id=f"r{run}g{goal.id}")
-    reply: m.GoalReply = await c.query("nav/goal", req)
     deadline = time.monotonic() + 30.0
+    while True:  # a reply lost under load: ask again (the same id, so nav takes it as the same goal)
+        try:
+            reply: m.GoalReply = await c.query("nav/goal", req)
+            break
+        except QueryError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.5)
     while not reply.accepted and ("no robot pose" in reply.reason or "no map" in reply.reason) \
             and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # nav has not yet seen odometry, map->odom or the map

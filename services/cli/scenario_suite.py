@@ -104,14 +104,21 @@ def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float,
             def progress(s: str, seed: int = seed) -> None:
                 print(f"{entry.name} s{seed}: {s}", flush=True)
 
-            runs, _, collisions, _, _ = asyncio.run(run_scenario(sc, session, stack.keys,
-                                                                 goal_timeout_s=goal_timeout_s, plots=False,
-                                                                 progress=progress))
+            try:
+                runs, _, collisions, _, _ = asyncio.run(run_scenario(sc, session, stack.keys,
+                                                                     goal_timeout_s=goal_timeout_s, plots=False,
+                                                                     progress=progress))
+            except (AssertionError, RuntimeError) as exc:  # that seed stopped; its goals count as not reached
+                row["note"] += f"seed {seed} stopped: {exc}; "
+                runs = [{"run": 1, "goals": [
+                    {"id": g.id, "target": list(g.pose), "reached": False, "claimed": "not run", "final": [None] * 3,
+                     "error": [None] * 3, "time_s": 0.0, "recoveries": 0, "collisions": 0, "driven_m": 0.0,
+                     "loc_error_max_m": None, "loc_error_rms_m": None, "nav_error": str(exc)} for g in sc.goals]}]
             for r in runs:
                 r["seed"] = seed
             row["runs"].extend(runs)
     except (AssertionError, RuntimeError) as exc:
-        row["note"] = f"stopped: {exc}"
+        row["note"] += f"stopped: {exc}"
     finally:
         stack.stop()
     return row
