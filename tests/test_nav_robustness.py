@@ -256,3 +256,18 @@ def test_a_new_stuck_episode_starts_at_the_bottom_of_the_ladder() -> None:
     nav._start_recovery(4.0, (4.1, 2.5, 0.0), "no valid trajectory")
     nav._start_recovery(5.0, (4.1, 2.5, 0.0), "no valid trajectory")
     assert nav.state == "failed" and "after 2 recoveries" in nav.error
+
+
+def test_a_slow_search_is_followed_by_rest_so_the_controller_keeps_its_share() -> None:
+    nav = Navigator(NavConfig(planner_max_duty=0.25), RobotSpec())
+    nav.set_map(np.zeros((100, 400), dtype=np.int8), 0.05, 0.0, 0.0)
+    assert nav.start_goal(0.0, (18.0, 2.5, 0.0))[0]
+    pose = (1.0, 2.5, 0.0)
+    assert nav.plan_due(0.0)  # a new goal plans at once
+    req = nav.make_request(pose, 0.0)
+    nav.apply_plan(2.0, nav.compute_plan(req), pose)  # the search took 2 s
+    assert nav.goal.last_plan_duration_s == pytest.approx(2.0)
+    assert not nav.plan_due(3.0) and not nav.plan_due(7.9)  # 2 s at a quarter duty: 6 s of rest
+    assert nav.plan_due(8.1)
+    nav.goal.plan_now = True  # a blocked path replans at once whatever the duty
+    assert nav.plan_due(2.5)
