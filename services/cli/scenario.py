@@ -568,10 +568,12 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
     runs = []
     mapping = None
     try:
-        deadline = time.monotonic() + 30
+        # the simulator builds a large map's world (2048x2048 cells: over a minute on a loaded machine) after its
+        # health token is up
+        deadline = time.monotonic() + 240
         while c.truth is None or c.sim_time <= 0:
             if time.monotonic() > deadline:
-                raise RuntimeError("no sim/ground_truth within 30 s")
+                raise RuntimeError("no sim/ground_truth within 240 s")
             await asyncio.sleep(0.05)
         if sc.mapping is not None:
             from services.cli.scenario_mapping import run_mapping
