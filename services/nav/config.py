@@ -77,6 +77,9 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     recovery_timeout_s: float = 20.0
     # inputs
     pose_timeout_s: float = 2.0
+    #: while localization's verdict is not ``tracking`` the robot holds still (no planning, no driving, no
+    #: success); a goal still held after this long fails, naming the verdict
+    localization_lost_timeout_s: float = 30.0
     global_costmap: CostmapConfig = msgspec.field(default_factory=lambda: CostmapConfig(update_frequency_hz=1.0))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)
     dwa: DwaConfig = msgspec.field(default_factory=DwaConfig)
