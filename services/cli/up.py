@@ -29,7 +29,7 @@ from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
-SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -100,8 +100,11 @@ class StackPlan:
                      f"sim.speed_factor={self.speed}"]
             sets += [f"sim.map_yaml={_toml_str(self.map_yaml)}"] if self.map_yaml else \
                 [f"sim.world={_toml_str(self.world)}"]
-        elif name == "drive" and self.sim:
-            sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+        elif name == "drive":
+            if self.sim:
+                sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+            if "safety" not in self.services():  # a subset without the collision monitor (benches, tests)
+                sets += ["drive.command_source=\"cmd_vel\""]
         elif name == "lidar" and self.sim:
             sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port}"]
         elif name == "localization":

@@ -135,7 +135,11 @@ async def run(ctx: ServiceContext) -> None:
 
     if sim:
         node.subscribe("clock", lambda c: ticker.advance(c.stamp), on_zenoh_thread=True)
-    node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
+    if cfg.command_source == "safety/cmd_vel":
+        node.subscribe("safety/cmd_vel", on_cmd, on_zenoh_thread=True)
+    else:
+        log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
+        node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
 
     async def enable(_: Empty) -> Reply:
         if loop.estopped:

@@ -126,6 +126,7 @@ class Backend:
         n.subscribe("tf/map_odom", setter("map_odom"))
         n.subscribe("wheels", setter("wheels"))
         n.subscribe("nav/status", setter("nav"))
+        n.subscribe("safety/state", setter("safety"), latched=True)
         n.subscribe("scan", setter("scan"))
         n.subscribe("nav/path", setter("path", "path_version"))
         n.subscribe("nav/local_plan", setter("local_plan", "path_version"))

@@ -196,8 +196,9 @@ class LocalizationNode:
         return pose, cov
 
     def save_pose(self) -> None:
-        """Write the current estimate atomically to the state folder (no-op without one or before localizing)."""
-        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None:
+        """Write the current estimate atomically to the state folder (no-op without one, or while the filter does
+        not trust it: a lost pose must not become the next start's initial pose)."""
+        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None or self.amcl.state != "tracking":
             return
         est = self.amcl.estimate
         data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
@@ -278,12 +279,29 @@ class LocalizationNode:
         else:
             r = self.ctx.robot
             mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
-        updated = self.amcl.process(odom_pose, beams, mount)
+        before = self.amcl.state
+        updated = self.amcl.process(odom_pose, beams, mount, scan.stamp)
+        changed = self.amcl.state != before
+        if changed:
+            self._on_verdict(before)
         if updated:
             self.stats["filter_updates"] += 1
+        if (updated or changed) and self.amcl.estimate is not None:
             self._publish_pose(scan.stamp)
         self._publish_tf(scan.stamp)
         self._publish_particles()
+
+    def _on_verdict(self, before: str) -> None:
+        """Log and count a change of the filter's verdict (published with the next pose, sent at once)."""
+        assert self.amcl is not None
+        a = self.amcl
+        self.stats[f"became_{a.state}"] += 1
+        self.stats["state"] = a.state
+        self.stats["reason"] = a.reason
+        if a.state == "lost":
+            self.log.warning("localization lost (was %s): %s", before, a.reason)
+        else:
+            self.log.info("localization %s (was %s): %s", a.state, before, a.reason)
 
     # ------------------------------------------------------------------ outputs
 
@@ -291,8 +309,14 @@ class LocalizationNode:
         assert self.amcl is not None and self.amcl.estimate is not None
         est = self.amcl.estimate
         x, y, th = est.pose
+        a = self.amcl
+        spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
         self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
-                                             covariance=est.covariance.reshape(-1).tolist()))
+                                             covariance=est.covariance.reshape(-1).tolist(), state=a.state,
+                                             match_score=a.match_score, spread_m=spread))
+        self.stats["state"] = a.state
+        self.stats["reason"] = a.reason
+        self.stats["match_score"] = round(a.match_score, 3)
 
     def _publish_tf(self, stamp: float) -> None:
         assert self.amcl is not None

@@ -86,6 +86,9 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     # a localization correction larger than this clears the obstacle layers (their marks used the wrong pose)
     clear_on_pose_jump_m: float = 0.5
     clear_on_pose_jump_rad: float = 0.35
+    #: while localization's verdict is not ``tracking`` the robot holds still (no planning, no driving, no
+    #: success); a goal still held after this long fails, naming the verdict
+    localization_lost_timeout_s: float = 30.0
     global_costmap: CostmapConfig = msgspec.field(
         default_factory=lambda: CostmapConfig(update_frequency_hz=1.0, static_wall_tolerance_m=0.15))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)

@@ -243,6 +243,11 @@ class Navigator:
         self._finish("canceled", "canceled by request")
         return True, f"goal {self.goal.id} canceled"
 
+    def fail(self, now: float, reason: str) -> None:
+        """End the active goal as failed for a reason found outside the navigator (e.g. localization lost)."""
+        if self.goal is not None and self.state not in TERMINAL and self.state != "idle":
+            self._finish("failed", reason, now)
+
     def start_sequence(self, now: float, waypoints: list[tuple[str, tuple[float, float, float]]], seq_id: str = ""
                        ) -> tuple[bool, str, str]:
         if not waypoints:

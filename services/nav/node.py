@@ -59,6 +59,9 @@ class PoseTracker:
         self.pose_stamp = -math.inf
         self.tf_stamp = -math.inf
         self.odom_at_pose: Pose | None = None
+        #: localization's verdict on its last pose (``tracking`` is the only one nav drives on)
+        self.loc_state = "tracking"
+        self.loc_detail = ""
 
     def on_odom(self, msg: m.Odometry) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
@@ -101,6 +104,8 @@ class PoseTracker:
 
     def on_pose(self, msg: m.PoseWithCovariance) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
+        self.loc_state = msg.state
+        self.loc_detail = f"scan match {msg.match_score:.2f}, spread {msg.spread_m:.2f} m"
         if all(math.isfinite(v) for v in p):
             self.pose, self.pose_stamp = p, msg.stamp
             self.odom_at_pose = self.odom
@@ -305,6 +310,7 @@ async def run(ctx: ServiceContext) -> None:
     rate = Rate(clock, cfg.controller_frequency_hz)
     next_local = next_global = next_costmap_pub = next_status = next_local_pub = clock.now()
     was_active = False
+    untrusted_since: float | None = None
     plan_task: asyncio.Task | None = None
 
     async def plan_job(req) -> None:  # noqa: ANN001
@@ -352,11 +358,24 @@ async def run(ctx: ServiceContext) -> None:
                 pub_costmap.put(costmap_message(nav, now))
                 next_costmap_pub = now + 1.0 / cfg.global_costmap.publish_frequency_hz
         active = nav.goal is not None and nav.state not in TERMINAL and nav.state != "idle"
+        untrusted = tracker.loc_state != "tracking"
+        if active and untrusted:
+            if untrusted_since is None:
+                untrusted_since = now
+                log.warning("localization %s (%s): holding goal %s", tracker.loc_state, tracker.loc_detail,
+                            nav.goal.id if nav.goal else "")
+            elif now - untrusted_since > cfg.localization_lost_timeout_s:
+                nav.fail(now, f"localization {tracker.loc_state} for {now - untrusted_since:.0f} s "
+                              f"({tracker.loc_detail})")
+                active = False
+        elif not untrusted and untrusted_since is not None:
+            log.info("localization tracking again: resuming")
+            untrusted_since = None
         if active and pose is not None:
             stale = now - tracker.last_update() > cfg.pose_timeout_s
-            if (plan_task is None or plan_task.done()) and nav.plan_due(now):
+            if not untrusted and (plan_task is None or plan_task.done()) and nav.plan_due(now):
                 plan_task = node.spawn(plan_job(nav.make_request(pose, now)))
-            if stale:
+            if stale or untrusted:
                 vx, vy, wz = 0.0, 0.0, 0.0
                 nav.cmd = (0.0, 0.0, 0.0)
             else:
