@@ -114,7 +114,8 @@ class Odometry(Message):
 class ModuleState(Message):
     """One swerve module: measured steer angle (rad) and wheel speed (m/s), currents (A), raw counts, flags.
 
-    ``fault_flags`` / ``status_flags`` are the RoboteQ FF / FS bit fields (protocols.md §1.7).
+    ``fault_flags`` / ``status_flags`` are the RoboteQ FF / FS bit fields (protocols.md §1.7); ``battery_v`` is the
+    controller's battery voltage (V, object 0x210D.2; 0 until reported).
     """
 
     steer_rad: float = 0.0
@@ -127,6 +128,7 @@ class ModuleState(Message):
     steer_counts: int = 0
     fault_flags: int = 0
     status_flags: int = 0
+    battery_v: float = 0.0
 
 
 class WheelStates(Message):

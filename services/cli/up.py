@@ -58,6 +58,11 @@ class StackPlan:
     only: list[str] | None = None
     #: a router to use instead of the embedded one (e.g. ``tcp/127.0.0.1:7447`` of ``zagv router`` or zenohd)
     external_router: str | None = None
+    #: VDA 5050 interface (services/vda5050), with an embedded MQTT broker on ``mqtt_port`` unless ``mqtt_embedded``
+    #: is off (then the [vda5050] broker of the config is used)
+    vda5050: bool = False
+    mqtt_port: int = 1883
+    mqtt_embedded: bool = True
 
     @property
     def endpoint(self) -> str:
@@ -73,6 +78,8 @@ class StackPlan:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
+        if self.vda5050:
+            names.append("vda5050")
         if self.only is not None:
             names = [s for s in names if s in self.only]
         return names
@@ -106,6 +113,8 @@ class StackPlan:
                 sets += ["localization.mode=\"mapping\""]
         elif name == "hmi_api":
             sets += [f"hmi_api.port={self.http_port}", f"hmi_api.state_dir={_toml_str(self.run_dir)}"]
+        elif name == "vda5050" and self.mqtt_embedded:
+            sets += ["vda5050.broker_host=\"127.0.0.1\"", f"vda5050.broker_port={self.mqtt_port}"]
         prefix = f"{name}."
         sets += [s for s in self.extra_sets if s.startswith(prefix)]
         return [a for s in sets for a in ("--set", s)]
@@ -116,6 +125,9 @@ class StackPlan:
         specs = []
         if self.sim:
             specs.append(ChildSpec("canbus", python_module("services.sim.canbus", "--port", str(self.can_port)),
+                                   env=env))
+        if "vda5050" in self.services() and self.mqtt_embedded:
+            specs.append(ChildSpec("mqtt", python_module("services.vda5050.broker", "--port", str(self.mqtt_port)),
                                    env=env))
         for name in self.services():
             argv = python_module(f"services.{name}", *self.common_args(), *self.service_sets(name))
@@ -252,6 +264,11 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
                    help="config override passed to the service it names")
     p.add_argument("--only", help="comma-separated subset of services to start")
+    p.add_argument("--vda5050", action="store_true", help="also start the VDA 5050 interface with an embedded MQTT "
+                   "broker on 127.0.0.1 (services/vda5050)")
+    p.add_argument("--mqtt-port", type=int, default=1883, help="embedded MQTT broker port (default %(default)s)")
+    p.add_argument("--no-embedded-broker", action="store_true",
+                   help="with --vda5050: use the [vda5050] broker of the config (a site broker) instead")
 
 
 def plan_from_args(args: argparse.Namespace) -> StackPlan:
@@ -263,6 +280,8 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         can_port=args.can_port, lidar_port=args.lidar_port, http_port=args.http_port, run_dir=run_dir,
         extra_sets=args.set, only=args.only.split(",") if args.only else None,
         external_router=getattr(args, "external_router", None),
+        vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
+        mqtt_embedded=not getattr(args, "no_embedded_broker", False),
     )
 
 

@@ -62,7 +62,8 @@ def wheel_states(snap: Snapshot) -> WheelStates:
             steer_cmd_rad=cmd.angle_rad, speed_cmd_mps=cmd.speed_mps,
             traction_amps=fb.traction_amps if fb else 0.0, steer_amps=fb.steer_amps if fb else 0.0,
             traction_counts=fb.traction_counts if fb else 0, steer_counts=fb.steer_counts if fb else 0,
-            fault_flags=fb.fault_flags if fb else 0, status_flags=fb.status_flags if fb else 0))
+            fault_flags=fb.fault_flags if fb else 0, status_flags=fb.status_flags if fb else 0,
+            battery_v=fb.battery_v if fb else 0.0))
     return WheelStates(stamp=snap.stamp, modules=modules, slip_residual_mps=snap.residual_mps,
                        enabled=snap.enabled, estopped=snap.estopped, link_ok=snap.link_ok, fault=snap.fault,
                        loop_hz=snap.loop_hz, loop_jitter_p99_ms=snap.jitter_p99_ms, loop_overruns=snap.overruns)
