@@ -27,7 +27,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_peer_defaults_listen_on_loopback_only_and_gossip_without_multicast() -> None:
-    conf = zenoh_config(ZenohSettings(connect=["tcp/127.0.0.1:7447"]))
+    conf = zenoh_config(ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"]))
     assert json.loads(conf.get_json("mode")) == "peer"
     assert json.loads(conf.get_json("listen/endpoints")) == [PEER_LISTEN_DEFAULT]
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
@@ -40,7 +40,7 @@ def test_peer_defaults_listen_on_loopback_only_and_gossip_without_multicast() ->
 def test_shared_memory_falls_back_where_dev_shm_is_not_writable(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
     assert not shm_usable(str(tmp_path / "missing"))
     monkeypatch.setattr("services.common.session.SHM_DIR", str(tmp_path / "missing"))
-    conf = zenoh_config(ZenohSettings(connect=["tcp/127.0.0.1:7447"]))
+    conf = zenoh_config(ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"]))
     assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
 
 
@@ -56,8 +56,8 @@ def test_peers_exchange_data_directly_and_keep_going_without_the_router(router_c
                               stderr=subprocess.DEVNULL, start_new_session=True)
     sessions: list[zenoh.Session] = []
     try:
-        a = open_session(ZenohSettings(connect=[endpoint]))
-        b = open_session(ZenohSettings(connect=[endpoint]))
+        a = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+        b = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
         sessions += [a, b]
         wait_for_sync(lambda: str(b.info.zid()) in {str(z) for z in a.info.peers_zid()}, timeout_s=20,
                       message="the two peers never connected to each other")
