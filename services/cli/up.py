@@ -120,8 +120,7 @@ class StackPlan:
         return [a for s in sets for a in ("--set", s)]
 
     def children(self) -> list[ChildSpec]:
-        env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")])),
-               **{k: os.environ.get(k, v) for k, v in SERVICE_ENV.items()}}
+        env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
         specs = []
         if self.sim:
             specs.append(ChildSpec("canbus", python_module("services.sim.canbus", "--port", str(self.can_port)),
@@ -133,11 +132,6 @@ class StackPlan:
             argv = python_module(f"services.{name}", *self.common_args(), *self.service_sets(name))
             specs.append(ChildSpec(name, argv, env=env))
         return specs
-
-
-#: environment of every service process, as the systemd units set it: glibc keeps at most 2 malloc arenas instead of
-#: 8 per core for the Zenoh runtime's threads, about 10 MB less resident memory across the stack (zagv bench stack)
-SERVICE_ENV = {"MALLOC_ARENA_MAX": "2"}
 
 
 def _toml_str(s: str) -> str:

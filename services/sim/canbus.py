@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import logging
 import signal
-import sys
 import threading
 
 from can_remote.server import RemoteServer
@@ -19,9 +18,6 @@ from services.common.lifetime import die_with_parent
 from services.common.logs import setup_logging
 
 DEFAULT_PORT = 54701
-#: the server runs two threads per client (websocket in, bus out); a frame arriving from one client must not wait
-#: the interpreter's default 5 ms for another thread's turn before it is put (and stamped) on the bus
-SWITCH_INTERVAL_S = 1e-4
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -32,7 +28,6 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--channel", default="zagv_sim", help="virtual bus channel name (default %(default)s)")
     args = p.parse_args(argv)
     setup_logging("canbus")
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
     logging.getLogger("can").setLevel(logging.WARNING)
     server = RemoteServer(args.host, args.port, bustype="virtual", channel=args.channel, receive_own_messages=False)
     thread = threading.Thread(target=server.serve_forever, name="canbus", daemon=True)
