@@ -321,8 +321,8 @@ class InitialPoseRequest(Message):
 
 
 #: a map name ``localization/save_map`` accepts: 1-64 letters, digits, '_', '-' or '.', no path, not starting with
-#: '.' or '-'
-MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+#: '.' or '-'. ``\Z``, not ``$``: ``$`` also matches before a trailing newline.
+MAP_NAME = re.compile(r"\A[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\Z")
 
 
 class SaveMapRequest(Message):

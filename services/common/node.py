@@ -254,8 +254,22 @@ class Node:
 
     # ------------------------------------------------------------------ lifetime
 
+    def withdraw_health(self) -> None:
+        """Undeclare the health token (any thread): the liveness watchdog saw the event loop stop turning."""
+        token, self._token = self._token, None
+        if token is not None:
+            with contextlib.suppress(Exception):
+                token.undeclare()
+
+    def restore_health(self) -> None:
+        """Declare the health token again after :meth:`withdraw_health` (loop thread)."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(self.keys.health(self.name))
+
     def close(self) -> None:
         for d in [*reversed(self._declared), self._stats, self._token]:
+            if d is None:
+                continue
             with contextlib.suppress(Exception):  # already gone with the session
                 (d.close if isinstance(d, TopicPublisher) else d.undeclare)()
         self._declared.clear()

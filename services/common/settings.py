@@ -1,4 +1,4 @@
-"""Settings every service shares: the Zenoh connection and the clock source."""
+"""Settings every service shares: the Zenoh connection, the clock source and the liveness watchdog."""
 
 from __future__ import annotations
 
@@ -28,3 +28,18 @@ class ClockSettings(msgspec.Struct, forbid_unknown_fields=True):
     """Clock source ([clock] table): wall time, or the simulator's ``clock`` topic when ``use_sim_time``."""
 
     use_sim_time: bool = False
+
+
+class LivenessSettings(msgspec.Struct, forbid_unknown_fields=True):
+    """The event-loop watchdog ([liveness] table, ``services.common.liveness``): after ``stall_s`` without a turn
+    of the loop the health token is withdrawn, after ``kill_s`` the process kills itself to be restarted.
+    0 takes the service's default."""
+
+    stall_s: float = 0.0
+    kill_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("stall_s", "kill_s"):
+            value = getattr(self, name)
+            if not (value >= 0 and value < float("inf")):
+                raise ValueError(f"liveness.{name} must be a finite number >= 0, got {value}")

@@ -291,7 +291,7 @@ $("#btn-map-save").addEventListener("click", async () => {
   if (r) lastSavedMap = name;
 });
 $("#btn-map-navigate").addEventListener("click", () => {
-  const map = prompt("Navigate on which saved map (name or YAML path; empty: the last saved)?", lastSavedMap);
+  const map = prompt("Navigate on which saved map (its name; empty: the last saved)?", lastSavedMap);
   if (map === null) return;
   act("navigate on map", () => api("POST", "/api/mapping/stop", { map }));
 });
