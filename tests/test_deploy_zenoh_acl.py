@@ -22,6 +22,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from services.common.session import open_session
+from services.common.settings import ZenohSettings
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 
@@ -67,12 +69,8 @@ def tls_client(cert_dir: Path, name: str, tls_port: int) -> zenoh.Session:
 
 
 def local_client(tcp_port: int) -> zenoh.Session:
-    """A robot service's session: plain TCP over loopback, as robot.toml [zenoh] gives it."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{tcp_port}"]))
-    return zenoh.open(conf)
+    """A robot service's session: a peer on plain TCP over loopback, as robot.toml [zenoh] gives it."""
+    return open_session(ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{tcp_port}"]))
 
 
 class Router:

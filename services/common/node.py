@@ -228,6 +228,10 @@ class Node:
                     send(query, Reply(ok=False, message=f"{type(exc).__name__}: {exc}"))
                 else:
                     query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+            finally:
+                # finalise now: the logged traceback keeps this frame (and the query) alive, and the caller's
+                # consolidated reply would wait for the query's end until its timeout
+                query.drop()
 
         def on_query(query: zenoh.Query) -> None:
             raw = query.payload.to_bytes() if query.payload is not None else b""

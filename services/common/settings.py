@@ -11,7 +11,9 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
     """How a process joins the robot's Zenoh network ([zenoh] table).
 
     Multicast scouting is always off: sessions connect to the explicit ``connect`` endpoints only.
-    ``config_file`` (json5) is applied first, then these keys.
+    ``config_file`` (json5) is applied first, then these keys. ``client`` (the default): everything through the
+    router; ``peer`` (rmw_zenoh's data path, opt-in): the router serves discovery and remote clients, data goes
+    directly between the processes of one host.
     """
 
     mode: Literal["client", "peer", "router"] = "client"
