@@ -16,7 +16,7 @@ import sys
 from proto import codec
 from proto import messages as m
 from services.cli.common import add_client_options, client_keys, client_session
-from services.common.node import QueryError, query
+from services.common.query import QueryError, query
 
 TERMINAL = ("succeeded", "failed", "canceled")
 

@@ -57,7 +57,7 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from proto.keys import Keys
-from services.common.node import QueryError, query
+from services.common.query import QueryError, query
 
 TERMINAL = ("succeeded", "failed", "canceled")
 

@@ -3,8 +3,8 @@
 Zenoh delivers samples and queries on its own threads; ``Node`` decodes them there and hands typed messages to the
 service's event loop. Every payload is checked against the type its key carries (``proto.registry``); a payload
 that does not decode is logged (rate-limited), counted in ``bad_payloads`` and dropped, and the service keeps
-running. Latched topics (``map``) are served to late joiners by a queryable on the same key, which subscribers
-query once when they declare themselves.
+running. Latched topics (``map``, ``pose``, ``nav/status``, ...) are served to late joiners by a queryable on the
+same key, which latched subscribers query whenever such a queryable appears (``LatchedFetch``).
 """
 
 from __future__ import annotations
@@ -25,13 +25,11 @@ from proto import codec
 from proto.keys import Keys
 from proto.messages import Message, Reply
 from services.common.clock import Clock, SimClock, WallClock
+from services.common.query import QueryError as QueryError  # re-exported for callers
+from services.common.query import query
 
 T = TypeVar("T", bound=Message)
 log = logging.getLogger("zagv.node")
-
-
-class QueryError(RuntimeError):
-    """A query that got no usable reply (timeout, no queryable, an error reply or a bad payload)."""
 
 
 class TopicPublisher:
@@ -62,6 +60,39 @@ class TopicPublisher:
         self._pub.undeclare()
         if self._queryable is not None:
             self._queryable.undeclare()
+
+
+class LatchedFetch:
+    """Fetches a latched topic's last value whenever a publisher's queryable for it appears, in any start order.
+
+    A Zenoh querier's matching listener reports when a queryable on the key comes (a producer started or
+    restarted, before or after this consumer); each time, the last value is asked for once. Values published
+    after the consumer's subscriber exists arrive through the subscriber itself.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None]) -> None:
+        self._on_sample = on_sample
+        self.fetches = 0
+        self._querier = session.declare_querier(key, timeout=5.0, consolidation=zenoh.ConsolidationMode.NONE)
+        self._listener = self._querier.declare_matching_listener(self._on_matching)
+        if self._querier.matching_status.matching:
+            self._fetch()
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        if status.matching:
+            self._fetch()
+
+    def _fetch(self) -> None:
+        self.fetches += 1
+        self._querier.get(zenoh.handlers.Callback(self._on_reply, lambda: None))
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._on_sample(reply.ok)
+
+    def undeclare(self) -> None:
+        self._listener.undeclare()
+        self._querier.undeclare()
 
 
 class Node:
@@ -175,12 +206,7 @@ class Node:
         key = self.keys(name)
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         if latched:
-
-            def on_reply(reply: zenoh.Reply) -> None:
-                if reply.ok is not None:
-                    on_sample(reply.ok)
-
-            self.session.get(key, on_reply, timeout=2.0)
+            self._declared.append(LatchedFetch(self.session, key, on_sample))
 
     def subscription(self, name: str, *, maxlen: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
         """An async iterator over messages on ``name`` keeping at most ``maxlen`` unread (oldest dropped)."""
@@ -245,7 +271,7 @@ class Node:
         self._declared.append(self.session.declare_queryable(key, on_query))
 
     async def query(self, name: str, request: Message | None = None, *, timeout_s: float = 2.0) -> Any:
-        """Send a query and return the first reply decoded as the query's reply type; raises QueryError."""
+        """``services.common.query.query`` on this node's session: waits for an answerer until ``timeout_s``."""
         return await query(self.session, self.keys, name, request, timeout_s=timeout_s)
 
     # ------------------------------------------------------------------ lifetime
@@ -263,36 +289,3 @@ def _default_request(t: type[T], key: str) -> T:
         return t()
     except TypeError:
         raise codec.ProtoDecodeError(key, t.__name__, "empty payload; this query needs arguments") from None
-
-
-async def query(
-    session: zenoh.Session, keys: Keys, name: str, request: Message | None = None, *, timeout_s: float = 2.0
-) -> Any:
-    """Query ``name`` on ``session`` from asyncio; the reply is decoded as the registered reply type."""
-    req_type, rep_type = codec.query_types(name)
-    key = keys(name)
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future[Any] = loop.create_future()
-    payload = codec.encode(request if request is not None else req_type())
-
-    def settle(value: Any, is_error: bool) -> None:
-        if not fut.done():
-            (fut.set_exception if is_error else fut.set_result)(value)
-
-    def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is not None:
-            try:
-                msg = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
-                loop.call_soon_threadsafe(settle, msg, False)
-            except codec.ProtoDecodeError as exc:
-                loop.call_soon_threadsafe(settle, QueryError(str(exc)), True)
-        else:
-            text = reply.err.payload.to_bytes().decode(errors="replace")
-            loop.call_soon_threadsafe(settle, QueryError(f"{key}: {text}"), True)
-
-    def on_done() -> None:
-        error = QueryError(f"no reply to {key} (no queryable answered within {timeout_s} s)")
-        loop.call_soon_threadsafe(settle, error, True)
-
-    session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=payload, timeout=timeout_s)
-    return await fut

@@ -36,7 +36,8 @@ from proto.messages import (
     WaypointsRequest,
 )
 from services.common.clock import Rate
-from services.common.node import Node, QueryError
+from services.common.node import Node
+from services.common.query import QueryError
 from services.common.robot import RobotSpec
 from services.hmi_api import auth
 from services.hmi_api.config import HmiApiConfig

@@ -21,7 +21,7 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from services.common.clock import Rate
-from services.common.node import QueryError
+from services.common.query import QueryError
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
