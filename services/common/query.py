@@ -96,7 +96,7 @@ async def query(
             raise value
         now = time.monotonic()
         # an unanswered get that lasted its whole timeout reached a queryable that never replied
-        matched = matched or now - sent >= 0.9 * (deadline - sent)
+        matched = matched or now - sent >= max(0.1, 0.9 * (deadline - sent))
         if now >= deadline:
             raise NoAnswer(key, now - started, attempts, matched)
         await asyncio.sleep(min(retry_s, deadline - now))
