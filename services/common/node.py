@@ -24,6 +24,7 @@ import zenoh
 from proto import codec
 from proto.keys import Keys
 from proto.messages import Message, Reply
+from services.common import systemd
 from services.common.clock import Clock, SimClock, WallClock
 from services.common.query import QueryError as QueryError  # re-exported for callers
 from services.common.query import query
@@ -109,13 +110,37 @@ class Node:
         self._bad_logged_at: dict[str, float] = {}
         self._declared: list[Any] = []
         self._started_at = time.monotonic()
-        self._token = session.liveliness().declare_token(keys.health(name))
+        self._token: Any = None  # the health token: declared by ready()
+        self.ready_at: float | None = None
         self._stats = session.declare_queryable(keys(f"@stats/{name}"), self._serve_stats)
         self.extra_stats: dict[str, Any] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
         if isinstance(self.clock, SimClock):
             sim_clock = self.clock
             self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor))
+
+    def ready(self, inputs: str = "") -> None:
+        """Declare the health token and tell systemd READY=1 (idempotent).
+
+        Call it once every subscriber, queryable and publisher the service offers exists and its required inputs
+        are in hand (docs/readiness.md); ``inputs`` says which, for the log.
+        """
+        if self._token is not None:
+            return
+        self._token = self.session.liveliness().declare_token(self.keys.health(self.name))
+        self.ready_at = time.monotonic()
+        systemd.notify("READY=1")
+        self.log.info("ready after %.1f s%s", self.ready_at - self._started_at, f" ({inputs})" if inputs else "")
+
+    async def ready_when(self, condition: Callable[[], str | None], stop: asyncio.Event, poll_s: float = 0.05) -> None:
+        """Wait (wall time) until ``condition()`` returns a description of the inputs in hand, then ``ready``."""
+        while not stop.is_set():
+            inputs = condition()
+            if inputs is not None:
+                self.ready(inputs)
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), poll_s)
 
     def spawn(self, coro: Awaitable[Any]) -> asyncio.Task[Any]:
         """Run ``coro`` as a task on the loop, keeping a reference until it ends (loop thread only)."""
@@ -277,7 +302,7 @@ class Node:
     # ------------------------------------------------------------------ lifetime
 
     def close(self) -> None:
-        for d in [*reversed(self._declared), self._stats, self._token]:
+        for d in [*reversed(self._declared), self._stats, *([self._token] if self._token is not None else [])]:
             with contextlib.suppress(Exception):  # already gone with the session
                 (d.close if isinstance(d, TopicPublisher) else d.undeclare)()
         self._declared.clear()

@@ -150,7 +150,7 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
                 await asyncio.sleep(period)
 
         watchdog = loop.create_task(feed())
-    systemd.notify("READY=1")
+    # READY=1 comes with the health token, from the service itself once it is ready (Node.ready)
     node.log.info("started (robot %s, %s clock)", robot.robot_id, "sim" if clock_settings.use_sim_time else "wall")
     runner = loop.create_task(run(ctx))
     stopper = loop.create_task(ctx.stop.wait())

@@ -238,6 +238,9 @@ async def run(ctx: ServiceContext) -> None:
     node.queryable("nav/waypoints", on_waypoints)
     node.queryable("nav/waypoints/control", on_control)
     node.queryable("nav/clear_costmaps", on_clear)
+    # ready once the map and a pose are in hand (both latched: they come whatever the start order)
+    node.spawn(node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
+                               ctx.stop))
 
     if getattr(clock, "is_sim", False):
         await clock.wait_started()  # type: ignore[attr-defined]
@@ -262,24 +265,8 @@ async def run(ctx: ServiceContext) -> None:
         elif nav.goal is not None and nav.goal.seq == out.goal_seq:
             pub_path.put(path_message(out.path, clock.now()))
 
-    map_asked_at = -math.inf
-    map_task: asyncio.Task | None = None
-
-    async def fetch_map() -> None:
-        try:
-            grid = await node.query("map", m.Empty(), timeout_s=2.0)
-        except QueryError as exc:
-            log.info("no map yet: %s", exc)
-            return
-        if not nav.has_map:
-            on_map(grid)
-
     while not ctx.stop.is_set():
         now = clock.now()
-        # the latched map may have been published before we subscribed: ask for it until we have one
-        if not nav.has_map and loop.time() - map_asked_at > 3.0 and (map_task is None or map_task.done()):
-            map_asked_at = loop.time()  # wall time: this is about link timing, not robot timing
-            map_task = node.spawn(fetch_map())
         pose = tracker.current()
         if pose is not None and nav.has_map:
             if now >= next_local:
