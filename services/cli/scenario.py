@@ -601,6 +601,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
                     help="config override passed to the stack (zagv up --set)")
     rp.add_argument("--run-dir", help="folder for the stack's run state and log (default: temporary)")
+    rp.add_argument("--start-seed", type=int, help="start the stack's services in a random order (zagv up)")
+    rp.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
+                    help="with --start-seed: random 0..S s delay before each service (zagv up)")
     rp.set_defaults(func=run)
 
 
@@ -625,6 +628,8 @@ def run(args: argparse.Namespace) -> int:
                   "--set", f"localization.initial_pose_x={x!r}", "--set", f"localization.initial_pose_y={y!r}",
                   "--set", f"localization.initial_pose_yaw={th!r}"]
     extra += [a for s in args.set for a in ("--set", s)]
+    if args.start_seed is not None:
+        extra += ["--start-seed", str(args.start_seed), "--start-delay-max", str(args.start_delay_max)]
     stack = Stack(run_dir, None, world=sc.world or "corridor", map_yaml=sc.map_yaml, speed=sc.speed,
                   extra_args=extra)
     print(f"zagv scenario: starting the simulated stack (log {run_dir / 'stack.log'})", flush=True)
