@@ -146,3 +146,18 @@ async def test_latched_topic_reaches_early_joiner_and_survives_a_producer_restar
         producer.close()
         producer.session.close()
     consumer.close()
+
+
+async def test_health_token_only_once_ready(client):
+    keys = Keys("t7")
+    observer = client()
+    node = Node("drive", client(), keys)
+
+    def alive() -> bool:
+        return any(r.ok is not None for r in observer.liveliness().get(keys.health("drive"), timeout=0.5))
+
+    node.queryable("drive/enable", lambda req: Reply(ok=True))
+    assert not alive(), "a health token before the service said it is ready"
+    node.ready("CAN link up")
+    await wait_for(alive, timeout_s=10, poll_s=0.1)
+    node.close()

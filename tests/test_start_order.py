@@ -22,6 +22,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import httpx
 import pytest
 
 from tests.support.hmi import HmiClient, base_url, full_stack_available, missing_services, password_of
@@ -86,9 +87,12 @@ def check_start(stack: Stack, last_started: float, figures: dict[str, float]) ->
                   message="the HMI did not answer in time")
 
     def hmi_has_map_and_pose() -> bool:
-        status = hmi.get("/api/status").json()
-        pose = status.get("pose") or {}
-        return hmi.get("/api/map").json().get("available") and pose.get("frame") == "map"
+        try:
+            status = hmi.get("/api/status").json()
+            pose = status.get("pose") or {}
+            return hmi.get("/api/map").json().get("available") and pose.get("frame") == "map"
+        except httpx.TransportError:  # not listening (yet, or again after a restart)
+            return False
 
     wait_for_sync(hmi_has_map_and_pose, timeout_s=max(0.1, deadline - time.monotonic()), poll_s=0.1,
                   message=f"the HMI had no map and map pose {budget:.0f} s after the last start:\n"

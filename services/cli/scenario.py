@@ -392,14 +392,18 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
             raise RuntimeError(f"localization/initial_pose refused: {r.message}")
         count_at_set = c.pose_count
 
-        def localized() -> bool:  # a pose published after the reset, near the start
+        def localized(converged: bool) -> bool:  # a pose published after the reset, near the start
             e = c.pose
             return (e is not None and c.pose_count > count_at_set  # noqa: B023
+                    and (e.state == "tracking" or not converged)
                     and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
                     and abs(wrap(e.pose.theta - pose[2])) < 0.1)
 
-        try:
-            await wait_until(localized, f"localization did not report a pose near the start {pose}", 10.0)
+        try:  # localization converges at rest (state "tracking"); a map where it cannot settle keeps the near pose
+            with contextlib.suppress(RuntimeError):
+                await wait_until(lambda: localized(True), "localization did not converge", 10.0)
+            await wait_until(lambda: localized(False), f"localization did not report a pose near the start {pose}",
+                             10.0)
             break
         except RuntimeError:
             if attempt == 6:
