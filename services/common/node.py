@@ -132,11 +132,15 @@ class Node:
         systemd.notify("READY=1")
         self.log.info("ready after %.1f s%s", self.ready_at - self._started_at, f" ({inputs})" if inputs else "")
 
-    async def ready_when(self, condition: Callable[[], str | None], stop: asyncio.Event, poll_s: float = 0.05) -> None:
-        """Wait (wall time) until ``condition()`` returns a description of the inputs in hand, then ``ready``."""
+    async def ready_when(self, condition: Callable[[], str | None], stop: asyncio.Event, poll_s: float = 0.05,
+                         declare: Callable[[], Any] | None = None) -> None:
+        """Wait (wall time) until ``condition()`` returns a description of the inputs in hand, then call
+        ``declare()`` (queryables that need those inputs to answer) and ``ready``."""
         while not stop.is_set():
             inputs = condition()
             if inputs is not None:
+                if declare is not None:
+                    declare()
                 self.ready(inputs)
                 return
             with contextlib.suppress(TimeoutError):

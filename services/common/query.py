@@ -11,6 +11,7 @@ about the link, not the robot, and must work while a simulator's clock is stoppe
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from typing import Any
 
@@ -49,19 +50,23 @@ def _get_once(session: zenoh.Session, key: str, payload: bytes, timeout_s: float
         if not fut.done():
             fut.set_result(value)
 
+    def deliver(value: tuple[str, Any]) -> None:  # Zenoh's thread; the caller's loop may be gone (it exited)
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(settle, value)
+
     def on_reply(reply: zenoh.Reply) -> None:
         if reply.ok is not None:
             try:
                 msg = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
-                loop.call_soon_threadsafe(settle, ("reply", msg))
+                deliver(("reply", msg))
             except codec.ProtoDecodeError as exc:
-                loop.call_soon_threadsafe(settle, ("error", QueryError(str(exc))))
+                deliver(("error", QueryError(str(exc))))
         else:
             text = reply.err.payload.to_bytes().decode(errors="replace")
-            loop.call_soon_threadsafe(settle, ("error", QueryError(f"{key}: {text}")))
+            deliver(("error", QueryError(f"{key}: {text}")))
 
     def on_done() -> None:
-        loop.call_soon_threadsafe(settle, ("none", None))
+        deliver(("none", None))
 
     # no consolidation: the first reply is delivered at once, not held until the queryable's final message
     session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=payload, timeout=max(timeout_s, 0.01),

@@ -233,14 +233,18 @@ async def run(ctx: ServiceContext) -> None:
             nav.update_costmaps(pose)
         return m.Reply(ok=True, message="obstacle layers cleared")
 
-    node.queryable("nav/goal", on_goal)
-    node.queryable("nav/cancel", on_cancel)
-    node.queryable("nav/waypoints", on_waypoints)
-    node.queryable("nav/waypoints/control", on_control)
-    node.queryable("nav/clear_costmaps", on_clear)
-    # ready once the map and a pose are in hand (both latched: they come whatever the start order)
-    node.spawn(node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
-                               ctx.stop))
+    async def serve_when_ready() -> None:
+        """Once the map and a pose are in hand (both latched: they come whatever the start order), declare the
+        queries and the health token. Until then a goal finds no queryable, and its client waits (query.py)
+        instead of being refused for a map nav has not received yet."""
+        await node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
+                              ctx.stop, declare=lambda: [node.queryable("nav/goal", on_goal),
+                                                         node.queryable("nav/cancel", on_cancel),
+                                                         node.queryable("nav/waypoints", on_waypoints),
+                                                         node.queryable("nav/waypoints/control", on_control),
+                                                         node.queryable("nav/clear_costmaps", on_clear)])
+
+    node.spawn(serve_when_ready())
 
     if getattr(clock, "is_sim", False):
         await clock.wait_started()  # type: ignore[attr-defined]
