@@ -21,6 +21,7 @@ test: install
 	$(BIN)/ruff check .
 	$(BIN)/python -m proto.schema --check
 	$(BIN)/python -m proto.keytable --check
+	$(BIN)/python -m tools.servicedoc --check
 	$(BIN)/python -m pytest -q -rs
 
 test-long: install
