@@ -161,3 +161,17 @@ async def test_health_token_only_once_ready(client):
     node.ready("CAN link up")
     await wait_for(alive, timeout_s=10, poll_s=0.1)
     node.close()
+
+
+async def test_a_large_latched_message_published_once_after_a_slow_start_arrives(client):
+    keys = Keys("t8")
+    consumer = Node("nav", client(), keys)
+    got: list[OccupancyGrid] = []
+    consumer.subscribe("map", got.append, latched=True)
+    producer = Node("localization", client(), keys)
+    pub = producer.publisher("map", latched=True)  # the queryable appears with nothing to serve yet
+    await asyncio.sleep(1.0)  # the producer loading its map: the consumer's fetch found no value
+    pub.put(OccupancyGrid(width=640, height=350, data=bytes(640 * 350)))  # once, 224 kB: must not be dropped
+    await wait_for(lambda: got and got[-1].width == 640, timeout_s=10)
+    producer.close()
+    consumer.close()

@@ -36,9 +36,13 @@ log = logging.getLogger("zagv.node")
 class TopicPublisher:
     """Publishes one topic's messages; keeps the last one for late joiners when latched."""
 
-    def __init__(self, node: Node, name: str, latched: bool, express: bool) -> None:
+    def __init__(self, node: Node, name: str, latched: bool, express: bool, block: bool | None = None) -> None:
         self.key = node.keys(name)
-        self._pub = node.session.declare_publisher(self.key, express=express)
+        # latched state is published rarely and must arrive: block rather than drop under congestion (Zenoh's
+        # default drops, and a large message such as the map, sent once, would then be lost for good)
+        block = latched if block is None else block
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._pub = node.session.declare_publisher(self.key, express=express, congestion_control=congestion)
         self._last: bytes | None = None
         self._queryable = None
         if latched:
@@ -187,9 +191,11 @@ class Node:
 
     # ------------------------------------------------------------------ pub/sub
 
-    def publisher(self, name: str, *, latched: bool = False, express: bool = False) -> TopicPublisher:
-        """A publisher on ``agv/<id>/<name>``; ``latched`` serves the last message to late joiners."""
-        pub = TopicPublisher(self, name, latched, express)
+    def publisher(self, name: str, *, latched: bool = False, express: bool = False,
+                  block: bool | None = None) -> TopicPublisher:
+        """A publisher on ``agv/<id>/<name>``; ``latched`` serves the last message to late joiners and (unless
+        ``block`` is False: a large periodic message may be dropped) never drops one under congestion."""
+        pub = TopicPublisher(self, name, latched, express, block)
         self._declared.append(pub)
         return pub
 

@@ -109,7 +109,7 @@ async def run(ctx: ServiceContext) -> None:
     pub_path = node.publisher("nav/path", latched=True)
     pub_local = node.publisher("nav/local_plan")
     pub_status = node.publisher("nav/status", latched=True)
-    pub_costmap = node.publisher("nav/costmap", latched=True)
+    pub_costmap = node.publisher("nav/costmap", latched=True, block=False)  # large and periodic: may drop
 
     def on_map(msg: m.OccupancyGrid) -> None:
         data = codec.array(msg, "data")
