@@ -30,7 +30,7 @@ from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
-SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -63,6 +63,11 @@ class StackPlan:
     #: hardware, stays first) and delay each start by a random 0..``start_delay_max_s`` s
     start_seed: int | None = None
     start_delay_max_s: float = 0.0
+    #: VDA 5050 interface (services/vda5050), with an embedded MQTT broker on ``mqtt_port`` unless ``mqtt_embedded``
+    #: is off (then the [vda5050] broker of the config is used)
+    vda5050: bool = False
+    mqtt_port: int = 1883
+    mqtt_embedded: bool = True
 
     @property
     def endpoint(self) -> str:
@@ -78,6 +83,8 @@ class StackPlan:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
+        if self.vda5050:
+            names.append("vda5050")
         if self.only is not None:
             names = [s for s in names if s in self.only]
         return names
@@ -98,8 +105,11 @@ class StackPlan:
                      f"sim.speed_factor={self.speed}"]
             sets += [f"sim.map_yaml={_toml_str(self.map_yaml)}"] if self.map_yaml else \
                 [f"sim.world={_toml_str(self.world)}"]
-        elif name == "drive" and self.sim:
-            sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+        elif name == "drive":
+            if self.sim:
+                sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+            if "safety" not in self.services():  # a subset without the collision monitor (benches, tests)
+                sets += ["drive.command_source=\"cmd_vel\""]
         elif name == "lidar" and self.sim:
             sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port}"]
         elif name == "localization":
@@ -111,6 +121,8 @@ class StackPlan:
                 sets += ["localization.mode=\"mapping\""]
         elif name == "hmi_api":
             sets += [f"hmi_api.port={self.http_port}", f"hmi_api.state_dir={_toml_str(self.run_dir)}"]
+        elif name == "vda5050" and self.mqtt_embedded:
+            sets += ["vda5050.broker_host=\"127.0.0.1\"", f"vda5050.broker_port={self.mqtt_port}"]
         prefix = f"{name}."
         sets += [s for s in self.extra_sets if s.startswith(prefix)]
         return [a for s in sets for a in ("--set", s)]
@@ -120,6 +132,9 @@ class StackPlan:
         specs = []
         if self.sim:
             specs.append(ChildSpec("canbus", python_module("services.sim.canbus", "--port", str(self.can_port)),
+                                   env=env))
+        if "vda5050" in self.services() and self.mqtt_embedded:
+            specs.append(ChildSpec("mqtt", python_module("services.vda5050.broker", "--port", str(self.mqtt_port)),
                                    env=env))
         for name in self.services():
             argv = python_module(f"services.{name}", *self.common_args(), *self.service_sets(name))
@@ -278,6 +293,11 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
                                                    "(start-order testing)")
     p.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
                    help="with --start-seed: delay each service's start by a random 0..S s (default %(default)s)")
+    p.add_argument("--vda5050", action="store_true", help="also start the VDA 5050 interface with an embedded MQTT "
+                   "broker on 127.0.0.1 (services/vda5050)")
+    p.add_argument("--mqtt-port", type=int, default=1883, help="embedded MQTT broker port (default %(default)s)")
+    p.add_argument("--no-embedded-broker", action="store_true",
+                   help="with --vda5050: use the [vda5050] broker of the config (a site broker) instead")
 
 
 def plan_from_args(args: argparse.Namespace) -> StackPlan:
@@ -290,6 +310,8 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         extra_sets=args.set, only=args.only.split(",") if args.only else None,
         external_router=getattr(args, "external_router", None),
         start_seed=getattr(args, "start_seed", None), start_delay_max_s=getattr(args, "start_delay_max", 0.0),
+        vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
+        mqtt_embedded=not getattr(args, "no_embedded_broker", False),
     )
 
 

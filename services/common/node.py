@@ -289,6 +289,10 @@ class Node:
                     send(query, Reply(ok=False, message=f"{type(exc).__name__}: {exc}"))
                 else:
                     query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+            finally:
+                # finalise now: the logged traceback keeps this frame (and the query) alive, and the caller's
+                # consolidated reply would wait for the query's end until its timeout
+                query.drop()
 
         def on_query(query: zenoh.Query) -> None:
             raw = query.payload.to_bytes() if query.payload is not None else b""
@@ -311,8 +315,22 @@ class Node:
 
     # ------------------------------------------------------------------ lifetime
 
+    def withdraw_health(self) -> None:
+        """Undeclare the health token (any thread): the liveness watchdog saw the event loop stop turning."""
+        token, self._token = self._token, None
+        if token is not None:
+            with contextlib.suppress(Exception):
+                token.undeclare()
+
+    def restore_health(self) -> None:
+        """Declare the health token again after :meth:`withdraw_health` (loop thread); never before ``ready``."""
+        if self._token is None and self.ready_at is not None:
+            self._token = self.session.liveliness().declare_token(self.keys.health(self.name))
+
     def close(self) -> None:
-        for d in [*reversed(self._declared), self._stats, *([self._token] if self._token is not None else [])]:
+        for d in [*reversed(self._declared), self._stats, self._token]:
+            if d is None:
+                continue
             with contextlib.suppress(Exception):  # already gone with the session
                 (d.close if isinstance(d, TopicPublisher) else d.undeclare)()
         self._declared.clear()

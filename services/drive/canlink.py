@@ -359,8 +359,8 @@ class RoboteqLink:
         """The latest feedback of each node (module order)."""
         out = []
         for st in self.states:
-            (c1, c2), (s1, s2), (a1, a2, ff, fs), (_, fm1, fm2, _) = st.counts, st.rpm, st.amps_flags, st.extra
-            out.append(ModuleFeedback(c1, c2, s1, s2, a1 / 10.0, a2 / 10.0, ff, fs, fm1, fm2))
+            (c1, c2), (s1, s2), (a1, a2, ff, fs), (bv, fm1, fm2, _) = st.counts, st.rpm, st.amps_flags, st.extra
+            out.append(ModuleFeedback(c1, c2, s1, s2, a1 / 10.0, a2 / 10.0, ff, fs, fm1, fm2, bv / 10.0))
         return out
 
     def health(self) -> str:

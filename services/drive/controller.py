@@ -48,6 +48,7 @@ class ModuleFeedback:
     status_flags: int = 0
     traction_motor_flags: int = 0
     steer_motor_flags: int = 0
+    battery_v: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)

@@ -24,6 +24,7 @@ from proto.messages import (
     Path,
     PoseArray,
     PoseWithCovariance,
+    SafetyState,
     Transform2D,
     Twist2D,
     WheelStates,
@@ -76,6 +77,7 @@ class RobotView:
     particles: PoseArray | None = None
     grid: OccupancyGrid | None = None
     cmd: Twist2D | None = None
+    safety: SafetyState | None = None
     alive: set[str] = field(default_factory=set)
     #: when each topic's last message arrived (wall monotonic s: link health, not robot time)
     received: dict[str, float] = field(default_factory=dict)
@@ -186,6 +188,19 @@ class RobotView:
                           "waypoint_count": n.waypoint_count, "sequence_paused": n.sequence_paused}
         else:
             out["nav"] = None
+        if self.safety is not None:
+            sf = self.safety
+            out["safety"] = {"action": sf.action, "scale": finite(sf.scale, 3), "reason": sf.reason,
+                             "nearest_m": finite(sf.nearest_m, 3) if sf.nearest_m >= 0 else None,
+                             "interventions": sf.interventions}
+        else:
+            out["safety"] = None
+        if self.pose is not None:
+            pw = self.pose
+            out["localization"] = {"state": pw.state, "match_score": finite(pw.match_score, 3),
+                                   "spread_m": finite(pw.spread_m, 3)}
+        else:
+            out["localization"] = None
         return out
 
 

@@ -217,8 +217,9 @@ class LocalizationNode:
         return pose, cov
 
     def save_pose(self) -> None:
-        """Write the current estimate atomically to the state folder (no-op without one or before localizing)."""
-        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None:
+        """Write the current estimate atomically to the state folder (no-op without one, or while the filter does
+        not trust it: a lost pose must not become the next start's initial pose)."""
+        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None or self.amcl.state != "tracking":
             return
         est = self.amcl.estimate
         data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
@@ -299,12 +300,29 @@ class LocalizationNode:
         else:
             r = self.ctx.robot
             mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
-        updated = self.settler.process(self.amcl, odom_pose, beams, mount)
+        before = self.amcl.state
+        updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp)
+        changed = self.amcl.state != before
+        if changed:
+            self._on_verdict(before)
         if updated:
             self.stats["filter_updates"] += 1
+        if (updated or changed) and self.amcl.estimate is not None:
             self._publish_pose(scan.stamp)
         self._publish_tf(scan.stamp)
         self._publish_particles()
+
+    def _on_verdict(self, before: str) -> None:
+        """Log and count a change of the filter's verdict (published with the next pose, sent at once)."""
+        assert self.amcl is not None
+        a = self.amcl
+        self.stats[f"became_{a.state}"] += 1
+        self.stats["state"] = a.state
+        self.stats["reason"] = a.reason
+        if a.state == "lost":
+            self.log.warning("localization lost (was %s): %s", before, a.reason)
+        else:
+            self.log.info("localization %s (was %s): %s", a.state, before, a.reason)
 
     # ------------------------------------------------------------------ outputs
 
@@ -315,14 +333,20 @@ class LocalizationNode:
 
     def _put_pose(self, stamp: float, pose: Pose, covariance: np.ndarray) -> None:
         x, y, th = (float(v) for v in pose)
-        state = "tracking" if self.settler.converged else "localizing"
-        spread_m = math.sqrt(max(float(covariance[0, 0] + covariance[1, 1]), 0.0) / 2.0)
+        a = self.amcl
+        assert a is not None
+        # the filter's verdict, held at localizing until the estimate has also settled at rest (settle.py)
+        state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
+        spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
         self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
                                              covariance=covariance.reshape(-1).tolist(), state=state,
-                                             spread_m=spread_m))
+                                             match_score=a.match_score, spread_m=spread))
+        self.stats["state"] = state
+        self.stats["reason"] = a.reason
+        self.stats["match_score"] = round(a.match_score, 3)
         if state == "tracking" and not self._reported_converged:
             self.log.info("converged at (%.3f, %.3f, %.3f), spread %.3f m, after %d no-motion updates", x, y, th,
-                          spread_m, self.settler.updates)
+                          spread, self.settler.updates)
         self._reported_converged = state == "tracking"
 
     def _publish_tf(self, stamp: float) -> None:

@@ -68,17 +68,18 @@ class AtRestSettler:
         return (math.hypot(odom_pose[0] - last[0], odom_pose[1] - last[1]) <= p.rest_m
                 and abs(float(wrap_angle(odom_pose[2] - last[2]))) <= p.rest_rad)
 
-    def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose) -> bool:
-        """One scan: a jittered no-motion update at rest, plain AMCL when moving; returns whether it updated."""
+    def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose, stamp: float | None = None) -> bool:
+        """One scan (at ``stamp``): a jittered no-motion update at rest, plain AMCL when moving; returns whether
+        the filter updated."""
         if self.converged:
-            return amcl.process(odom_pose, beams, mount)
+            return amcl.process(odom_pose, beams, mount, stamp)
         if not self.at_rest(odom_pose):
             self._recent.clear()
-            return amcl.process(odom_pose, beams, mount)
+            return amcl.process(odom_pose, beams, mount, stamp)
         if amcl.estimate is not None:
             self._jitter(amcl)
         amcl.request_nomotion_update()
-        updated = amcl.process(odom_pose, beams, mount)
+        updated = amcl.process(odom_pose, beams, mount, stamp)
         if updated and amcl.estimate is not None:
             self.updates += 1
             self._recent.append(amcl.estimate.pose)
