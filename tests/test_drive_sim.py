@@ -198,7 +198,9 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     d.forward(1.0, axis=1)
     odom, true = d.poses()
     rt, ro = relative(true0, true), relative(odom0, odom)
-    assert rt[1] == pytest.approx(1.0, abs=0.02) and abs(rt[0]) < 0.02 and abs(rt[2]) < 0.01
+    # how far past 1 m it coasts depends on this test's command latency (wall time, machine load), not on the
+    # drive: the drive is judged by the odometry agreeing with the truth, and by the motion staying sideways
+    assert rt[1] >= 0.98 and abs(rt[0]) < 0.02 and abs(rt[2]) < 0.01
     assert math.hypot(ro[0] - rt[0], ro[1] - rt[1]) <= 0.01 * rt[1] + 0.002
 
     # turning in place: heading changes, position does not
@@ -226,12 +228,19 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
         if max(b - a for a, b in zip(tail, tail[1:])) > 0.1 or not steady or not smooth:
             continue
         ramp = [w.stamp for w in d.wheel_log if w.stamp > sent_lo and w.modules[0].speed_cmd_mps < 0.199]
-        stopped = [g.stamp for g in d.truth_log if g.stamp > sent_lo and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
-        assert ramp and stopped, "the robot never stopped after cmd_vel ended"
+        assert ramp, "the drive never began to decelerate after cmd_vel ended"
         assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the cmd"
         assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the cmd"
-        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs
-        assert decel - 0.1 <= stopped[0] - ramp[0] <= decel + 0.1, f"took {stopped[0] - ramp[0]:.2f} s to stop"
+        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs. Both
+        # ends are measured on one timeline, the simulator's ground truth (the drive's stamps follow its own view of
+        # the sim clock, which runs ahead of the truth's while the simulator is starved of CPU)
+        speeds = [(g.stamp, math.hypot(g.twist.vx, g.twist.vy)) for g in d.truth_log if g.stamp > sent_lo]
+        slowing = [t for t, v in speeds if v < 0.195]
+        stopped = [t for t, v in speeds if v < 0.005]
+        assert slowing and stopped, "the robot never stopped after cmd_vel ended"
+        expected = decel * (0.195 - 0.005) / 0.2
+        took = stopped[0] - slowing[0]
+        assert expected - 0.1 <= took <= expected + 0.1, f"took {took:.2f} s (sim) to slow from 0.195 to 0.005 m/s"
         break
     else:
         pytest.fail("the cmd_vel stream or the drive stuttered in every attempt (machine overloaded)")

@@ -32,6 +32,7 @@ HANGING_SERVICE = textwrap.dedent("""
     from services.common.service import service_main
 
     async def run(ctx):
+        ctx.node.ready()  # the health token (docs/readiness.md)
         await asyncio.sleep(1.0)
         print("hanging now", flush=True)
         read_end, _write_end = os.pipe()

@@ -156,11 +156,12 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
     if period:
         async def feed() -> None:
             while True:
-                systemd.notify("WATCHDOG=1")
+                if node.ready_at is not None:  # keep-alives follow READY=1 (sent by Node.ready)
+                    systemd.notify("WATCHDOG=1")
                 await asyncio.sleep(period)
 
         watchdog = loop.create_task(feed())
-    systemd.notify("READY=1")
+    # READY=1 comes with the health token, from the service itself once it is ready (Node.ready)
     node.log.info("started (robot %s, %s clock)", robot.robot_id, "sim" if clock_settings.use_sim_time else "wall")
     runner = loop.create_task(run(ctx))
     stopper = loop.create_task(ctx.stop.wait())

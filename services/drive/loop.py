@@ -240,6 +240,7 @@ class DriveLoop:
         self.flag_fault = ""
         self.cmd_rejected = 0
         self.reconnects = 0
+        self.link_attempts = 0  #: CAN link openings tried (readiness: the link is up or reported down)
         self.cycle_errors = 0
         self._cmd: Twist | None = None
         self._cmd_at = -math.inf
@@ -476,6 +477,7 @@ class DriveLoop:
                 if attempt == 1 or attempt % 10 == 0:
                     log.warning("CAN link attempt %d failed: %s", attempt, exc)
                 self.link_fault = str(exc)
+                self.link_attempts += 1
                 continue
             if self.estopped:
                 failures = link.estop()
@@ -485,6 +487,7 @@ class DriveLoop:
             self.link = link
             self.link_fault = ""
             self.link_ok = True
+            self.link_attempts += 1
             if not initial:
                 self.reconnects += 1
             log.info("CAN link %s after %d attempt(s)", "up" if initial else "restored", attempt)

@@ -196,6 +196,13 @@ async def run(ctx: ServiceContext) -> None:
         imu_reader.start()
 
     loop.start()
+
+    def link_known() -> str | None:  # readiness: the CAN link is up, or its first opening failed and says why
+        if loop.link_ok:
+            return "CAN link up"
+        return f"CAN link down: {loop.link_fault}" if loop.link_attempts else None
+
+    node.spawn(node.ready_when(link_known, ctx.stop))
     log.info("control loop at %.0f Hz on the %s clock, CAN %s %s", cfg.rate_hz, "sim" if sim else "wall",
              cfg.can_interface, cfg.can_channel)
     try:

@@ -36,7 +36,8 @@ from proto.messages import (
     WaypointsRequest,
 )
 from services.common.clock import Rate
-from services.common.node import Node, QueryError
+from services.common.node import Node
+from services.common.query import QueryError
 from services.common.robot import RobotSpec
 from services.hmi_api import auth
 from services.hmi_api.config import HmiApiConfig
@@ -121,14 +122,15 @@ class Backend:
                     setattr(v, version, getattr(v, version) + 1)
             return set_it
 
+        # latched topics (pose, map_odom, nav/status, paths, map) arrive whatever the start order (Node.subscribe)
         n.subscribe("odom", setter("odom"))
-        n.subscribe("pose", setter("pose"))
-        n.subscribe("tf/map_odom", setter("map_odom"))
+        n.subscribe("pose", setter("pose"), latched=True)
+        n.subscribe("tf/map_odom", setter("map_odom"), latched=True)
         n.subscribe("wheels", setter("wheels"))
-        n.subscribe("nav/status", setter("nav"))
+        n.subscribe("nav/status", setter("nav"), latched=True)
         n.subscribe("safety/state", setter("safety"), latched=True)
         n.subscribe("scan", setter("scan"))
-        n.subscribe("nav/path", setter("path", "path_version"))
+        n.subscribe("nav/path", setter("path", "path_version"), latched=True)
         n.subscribe("nav/local_plan", setter("local_plan", "path_version"))
         n.subscribe("particles", setter("particles", "particles_version"))
         n.subscribe("map", self._on_map, latched=True)

@@ -51,6 +51,8 @@ async def run(ctx: ServiceContext) -> None:
                                         ws="websockets-sansio", ws_ping_interval=None, **tls))
     tasks = [ctx.node.spawn(backend.jog_loop(ctx.stop)), ctx.node.spawn(backend.record_loop(ctx.stop)),
              ctx.node.spawn(server.serve(sockets=[sock]))]
+    node = ctx.node
+    node.spawn(node.ready_when(lambda: "HTTP API serving" if server.started else None, ctx.stop))
     log.info("HMI at %s://%s:%d/ (API /api, OpenAPI /api/schema/openapi.json)", "https" if tls else "http",
              config.host, config.port)
     try:

@@ -162,7 +162,9 @@ class RobotView:
             cov = self.pose.covariance if self.pose is not None and frame == "map" else []
             out["pose"] = {"x": finite(x), "y": finite(y), "theta": finite(th), "frame": frame,
                            "std_xy_m": std(cov[0] + cov[4]) if len(cov) == 9 else None,
-                           "std_theta_rad": std(cov[8]) if len(cov) == 9 else None}
+                           "std_theta_rad": std(cov[8]) if len(cov) == 9 else None,
+                           # the filter's verdict: "localizing" until it converged, then "tracking" (or "lost")
+                           "localization": self.pose.state if self.pose is not None else None}
         else:
             out["pose"] = None
         if self.wheels is not None:

@@ -241,6 +241,12 @@ class ModeSwitcher:
         self.node.queryable("localization/save_map", self.on_save_map)
         self.node.queryable("localization/mode", self.on_mode)
 
+    def readiness(self) -> str | None:
+        """What readiness rests on (docs/readiness.md): mapping needs no input; navigation its map and filter."""
+        if self.mapping is not None:
+            return "mapping mode"
+        return self.nav.readiness() if self.nav is not None else None
+
     @property
     def mode(self) -> str:
         return "mapping" if self.mapping is not None else "navigation"
@@ -365,6 +371,7 @@ class ModeSwitcher:
 async def run(ctx: ServiceContext) -> None:
     cfg: LocalizationConfig = ctx.config["localization"]
     switcher = ModeSwitcher(ctx, cfg)
+    ctx.node.spawn(ctx.node.ready_when(switcher.readiness, ctx.stop))
     period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else 1.0
     while not ctx.stop.is_set():
         stop = asyncio.ensure_future(ctx.stop.wait())

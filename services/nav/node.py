@@ -24,7 +24,7 @@ from proto import codec
 from proto import messages as m
 from services.common.clock import Rate
 from services.common.grid import YAW_EPS_RAD, axis_aligned
-from services.common.node import QueryError
+from services.common.query import QueryError
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
@@ -150,7 +150,7 @@ async def run(ctx: ServiceContext) -> None:
     pub_path = node.publisher("nav/path", latched=True)
     pub_local = node.publisher("nav/local_plan")
     pub_status = node.publisher("nav/status", latched=True)
-    pub_costmap = node.publisher("nav/costmap", latched=True)
+    pub_costmap = node.publisher("nav/costmap", latched=True, block=False)  # large and periodic: may drop
 
     def on_map(msg: m.OccupancyGrid) -> None:
         data = codec.array(msg, "data")
@@ -298,11 +298,18 @@ async def run(ctx: ServiceContext) -> None:
             nav.update_costmaps(pose)
         return m.Reply(ok=True, message="obstacle layers cleared")
 
-    node.queryable("nav/goal", on_goal)
-    node.queryable("nav/cancel", on_cancel)
-    node.queryable("nav/waypoints", on_waypoints)
-    node.queryable("nav/waypoints/control", on_control)
-    node.queryable("nav/clear_costmaps", on_clear)
+    async def serve_when_ready() -> None:
+        """Once the map and a pose are in hand (both latched: they come whatever the start order), declare the
+        queries and the health token. Until then a goal finds no queryable, and its client waits (query.py)
+        instead of being refused for a map nav has not received yet."""
+        await node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
+                              ctx.stop, declare=lambda: [node.queryable("nav/goal", on_goal),
+                                                         node.queryable("nav/cancel", on_cancel),
+                                                         node.queryable("nav/waypoints", on_waypoints),
+                                                         node.queryable("nav/waypoints/control", on_control),
+                                                         node.queryable("nav/clear_costmaps", on_clear)])
+
+    node.spawn(serve_when_ready())
 
     if getattr(clock, "is_sim", False):
         await clock.wait_started()  # type: ignore[attr-defined]
@@ -328,24 +335,8 @@ async def run(ctx: ServiceContext) -> None:
         elif nav.goal is not None and nav.goal.seq == out.goal_seq:
             pub_path.put(path_message(out.path, clock.now()))
 
-    map_asked_at = -math.inf
-    map_task: asyncio.Task | None = None
-
-    async def fetch_map() -> None:
-        try:
-            grid = await node.query("map", m.Empty(), timeout_s=2.0)
-        except QueryError as exc:
-            log.info("no map yet: %s", exc)
-            return
-        if not nav.has_map:
-            on_map(grid)
-
     while not ctx.stop.is_set():
         now = clock.now()
-        # the latched map may have been published before we subscribed: ask for it until we have one
-        if not nav.has_map and loop.time() - map_asked_at > 3.0 and (map_task is None or map_task.done()):
-            map_asked_at = loop.time()  # wall time: this is about link timing, not robot timing
-            map_task = node.spawn(fetch_map())
         pose = tracker.current()
         if pose is not None and nav.has_map:
             if now >= next_local:

@@ -112,6 +112,7 @@ class SafetyNode:
 async def run(ctx: ServiceContext) -> None:
     cfg: SafetyConfig = ctx.config["safety"]
     safety = SafetyNode(ctx, cfg)
+    ctx.node.ready("subscriptions and publishers declared")  # it needs no input to filter (no scan: it stops)
     while not ctx.stop.is_set():
         stop = asyncio.ensure_future(ctx.stop.wait())
         sleeper = asyncio.ensure_future(ctx.clock.sleep(cfg.watch_period_s))

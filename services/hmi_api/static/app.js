@@ -195,7 +195,8 @@ function renderStatus(s) {
   const o = s.odom;
   $("#st-odom").textContent = o ? `x ${fmt(o.x)} y ${fmt(o.y)} θ ${deg(o.theta)} | v ${fmt(o.vx)} ${fmt(o.vy)} ${fmt(o.wz)}` : "–";
   const p = s.pose;
-  $("#st-pose").textContent = p ? `${p.frame} x ${fmt(p.x)} y ${fmt(p.y)} θ ${deg(p.theta)}` : "–";
+  const verdict = p && p.localization && p.localization !== "tracking" ? ` (${p.localization})` : "";
+  $("#st-pose").textContent = p ? `${p.frame} x ${fmt(p.x)} y ${fmt(p.y)} θ ${deg(p.theta)}${verdict}` : "–";
   const w = s.wheels;
   $("#st-modules").textContent = w && w.modules.length
     ? w.modules.map((m, i) => `M${i + 1} ${deg(m.steer_rad)} ${fmt(m.speed_mps)} m/s`).join(" · ") : "–";
