@@ -23,6 +23,7 @@ from proto.keys import Keys
 from services.cli.stack_process import REPO_ROOT, Stack, free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from tests.support.processes import process_alive
 from tests.support.waiting import wait_for_sync
 
 #: a service that answers for a moment, then blocks its event loop in a read that never returns (like a read of
@@ -41,14 +42,6 @@ HANGING_SERVICE = textwrap.dedent("""
     service_main("hangs", {}, run, sys.argv[1:])
 """)
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    with open(f"/proc/{pid}/stat") as f:
-        return f.read().split()[2] != "Z"
 
 
 @pytest.fixture
@@ -116,11 +109,11 @@ def test_child_dies_with_its_supervisor_even_blocked_with_sigterm_ignored(tmp_pa
     try:
         assert proc.stdout is not None
         child_pid = int(proc.stdout.readline())
-        assert _alive(child_pid)
+        assert process_alive(child_pid)
     finally:
         proc.kill()
         proc.wait()
-    wait_for_sync(lambda: not _alive(child_pid), timeout_s=5,
+    wait_for_sync(lambda: not process_alive(child_pid), timeout_s=5,
                   message="the child outlived its supervisor (blocked, SIGTERM ignored)")
 
 
@@ -140,7 +133,7 @@ def test_zagv_up_stops_within_10_s_of_ctrl_c_with_a_stopped_service(tmp_path: Pa
         stack.stop()
     print(f"\nzagv up stopped {took_s:.2f} s after Ctrl-C with drive stopped (SIGSTOP)")
     assert took_s <= 10.0
-    left = [name for name, pid in pids.items() if _alive(pid)]
+    left = [name for name, pid in pids.items() if process_alive(pid)]
     assert not left, f"left behind: {left}"
 
 
