@@ -238,6 +238,32 @@ class NavStatus(Message):
     waypoint_results: list[WaypointResult] = msgspec.field(default_factory=list)
 
 
+# --------------------------------------------------------------------------- safety
+
+
+SafetyAction = Literal["clear", "slowdown", "approach", "stop", "no_scan"]
+
+
+class SafetyState(Message):
+    """The collision monitor's verdict on the last command (between ``cmd_vel`` and ``safety/cmd_vel``).
+
+    ``action``: ``clear`` (passed unchanged), ``slowdown`` (an obstacle inside the slow-down zone ahead: translation
+    scaled by ``scale``), ``approach`` (contact predicted within the look-ahead time: scaled by ``scale``), ``stop``
+    (an obstacle inside the stop zone ahead: translation zeroed), ``no_scan`` (no fresh scan: everything zeroed).
+    ``nearest_m`` is the clearance between the footprint and the nearest scan point ahead (-1 when none),
+    ``requested``/``commanded`` the twists in and out, ``interventions`` a running count of commands changed.
+    """
+
+    stamp: float = 0.0
+    action: SafetyAction = "clear"
+    scale: float = 1.0
+    nearest_m: float = -1.0
+    reason: str = ""
+    requested: Twist2D = msgspec.field(default_factory=Twist2D)
+    commanded: Twist2D = msgspec.field(default_factory=Twist2D)
+    interventions: int = 0
+
+
 # --------------------------------------------------------------------------- sim
 
 
@@ -321,8 +347,8 @@ class InitialPoseRequest(Message):
 
 
 #: a map name ``localization/save_map`` accepts: 1-64 letters, digits, '_', '-' or '.', no path, not starting with
-#: '.' or '-'
-MAP_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+#: '.' or '-'. ``\Z``, not ``$``: ``$`` also matches before a trailing newline.
+MAP_NAME = re.compile(r"\A[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\Z")
 
 
 class SaveMapRequest(Message):

@@ -7,6 +7,8 @@ from proto import messages as m
 #: topic name (after ``agv/<id>/``) -> payload type
 TOPICS: dict[str, type[m.Message]] = {
     "cmd_vel": m.Twist2D,
+    "safety/cmd_vel": m.Twist2D,
+    "safety/state": m.SafetyState,
     "odom": m.Odometry,
     "wheels": m.WheelStates,
     "scan": m.LaserScan,

@@ -156,6 +156,21 @@ def test_localization_and_hmi_api_keep_state_in_their_state_directory(venv: Path
         assert "StateDirectory" not in units[f"zagv-{name}.service"]["Service"]
 
 
+def test_drive_knows_a_restart_from_its_runtime_folder(venv: Path, tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    drive = rendered(options(venv))["zagv-drive.service"]
+    assert one(drive, "Service", "RuntimeDirectory") == "zagv-drive"
+    assert one(drive, "Service", "RuntimeDirectoryPreserve") == "restart"  # kept on restarts, removed on stop
+    from services.common.lifetime import is_restart
+
+    monkeypatch.delenv("ZAGV_START_COUNT", raising=False)
+    monkeypatch.setenv("RUNTIME_DIRECTORY", str(tmp_path))
+    assert not is_restart("drive")  # the first start leaves its marker
+    assert is_restart("drive")  # a restart finds it
+    (tmp_path / "drive.started").unlink()  # the unit was stopped: systemd removed the folder's content
+    assert not is_restart("drive")
+
+
 def test_router_unit_is_notify_for_zagv_router_and_exec_for_zenohd(venv: Path, fake_zenohd: Path) -> None:
     zagv = rendered(options(venv, router="zagv", zenoh_config="/etc/zagv/zenoh/router-lan-tls.json5"))
     router = zagv["zagv-router.service"]

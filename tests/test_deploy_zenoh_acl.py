@@ -22,6 +22,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from services.common.session import open_session
+from services.common.settings import ZenohSettings
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 
@@ -67,12 +69,8 @@ def tls_client(cert_dir: Path, name: str, tls_port: int) -> zenoh.Session:
 
 
 def local_client(tcp_port: int) -> zenoh.Session:
-    """A robot service's session: plain TCP over loopback, as robot.toml [zenoh] gives it."""
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{tcp_port}"]))
-    return zenoh.open(conf)
+    """A robot service's session: a peer on plain TCP over loopback, as robot.toml [zenoh] gives it."""
+    return open_session(ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{tcp_port}"]))
 
 
 class Router:
@@ -219,3 +217,91 @@ def test_a_certificate_from_another_ca_cannot_open_a_session(acl_router, tmp_pat
     with pytest.raises(zenoh.ZError):
         zenoh.open(conf).close()
     assert router.proc.poll() is None, f"router died:\n{router.output()}"
+
+
+#: (key after agv/r1/, message) the HMI host may send: each arrives
+HMI_ALLOWED = [("nav/goal", "query"), ("nav/cancel", "query"), ("nav/waypoints", "query"),
+               ("nav/waypoints/control", "query"), ("drive/estop", "query"), ("drive/disable", "query"),
+               ("hmi/poses/dock", "query"), ("cmd_vel", "put"), ("hmi/poses/dock", "put")]
+#: what deploy/README.md ("Access control", "Threat model") denies to the HMI host: each never arrives
+HMI_DENIED = [("drive/enable", "query"), ("drive/release", "query"), ("localization/initial_pose", "query"),
+              ("localization/save_map", "query"), ("localization/mode", "query"), ("localization/global", "query"),
+              ("sim/teleport", "query"), ("odom", "put"), ("scan", "put"), ("map", "put"), ("drive/enable", "put"),
+              ("localization/mode", "put"), ("nav/goal", "put"), ("cmd_vel", "delete")]
+#: and to any other host: everything the HMI may send, and everything it may not
+OTHER_DENIED = HMI_ALLOWED + HMI_DENIED
+
+
+def test_every_deny_of_the_readme_holds_and_the_hmi_allows_pass(acl_router) -> None:
+    cert_dir, tcp_port, tls_port, router = acl_router
+    arrived: list[tuple[str, str, bytes]] = []
+    lock = threading.Lock()
+
+    def record(kind: str, key: str, payload: bytes) -> None:
+        with lock:
+            arrived.append((kind, key, payload))
+
+    def seen(kind: str, key: str, payload: bytes) -> bool:
+        with lock:
+            return (kind, key, payload) in arrived
+
+    sessions: list[zenoh.Session] = []
+    try:
+        robot = local_client(tcp_port)  # stands for every robot service: answers every query, hears every put
+        sessions.append(robot)
+        robot.declare_subscriber("agv/r1/**", lambda s: record(
+            "put" if s.kind == zenoh.SampleKind.PUT else "delete", str(s.key_expr), s.payload.to_bytes()))
+        robot.declare_subscriber(SENTINEL_KEY, lambda s: record("put", str(s.key_expr), s.payload.to_bytes()))
+        keys = sorted({key for key, _ in OTHER_DENIED})
+
+        def answer(query: zenoh.Query) -> None:
+            record("query", str(query.key_expr), query.payload.to_bytes() if query.payload else b"")
+            query.reply(query.key_expr, b"ok")
+
+        for key in keys:
+            robot.declare_queryable(f"agv/r1/{key}", answer)
+        hmi = tls_client(cert_dir, "zagv-hmi", tls_port)
+        other = tls_client(cert_dir, "zagv-fleet", tls_port)
+        sessions += [hmi, other]
+
+        def send(session: zenoh.Session, key: str, message: str, payload: bytes) -> None:
+            if message == "put":
+                session.put(f"agv/r1/{key}", payload)
+            elif message == "delete":
+                session.delete(f"agv/r1/{key}")
+            else:
+                session.get(f"agv/r1/{key}", payload=payload, timeout=2.0)
+
+        for name, session in (("hmi", hmi), ("other", other)):
+            def link_ready(session: zenoh.Session = session, name: str = name) -> bool:
+                session.put(SENTINEL_KEY, f"{name}-ready".encode())
+                return seen("put", SENTINEL_KEY, f"{name}-ready".encode())
+
+            wait_for_sync(link_ready, timeout_s=20, poll_s=0.1,
+                          message=f"{name}'s sentinel never arrived; router output:\n{router.output()}")
+
+        # the HMI's allowed requests arrive (re-sent until the router has routed the robot's declarations)
+        for key, message in HMI_ALLOWED:
+            payload = f"hmi-{message}-{key}".encode()
+
+            def allowed_arrived(key: str = key, message: str = message, payload: bytes = payload) -> bool:
+                send(hmi, key, message, payload)
+                return seen(message, f"agv/r1/{key}", payload)
+
+            wait_for_sync(allowed_arrived, timeout_s=20, poll_s=0.1, message=f"the HMI's {message} {key} was dropped")
+
+        # denied requests, then a sentinel on the same session: once it is in, the denied ones would have been too
+        for name, session, denied in (("hmi", hmi, HMI_DENIED), ("other", other, OTHER_DENIED)):
+            for key, message in denied:
+                send(session, key, message, f"{name}-denied-{message}-{key}".encode())
+            session.put(SENTINEL_KEY, f"{name}-after".encode())
+            wait_for_sync(lambda name=name: seen("put", SENTINEL_KEY, f"{name}-after".encode()), timeout_s=20,
+                          message=f"{name}'s sentinel after the denied requests never arrived")
+            with lock:
+                leaked = [(kind, key) for kind, key, payload in arrived
+                          if payload.startswith(f"{name}-denied-".encode())]
+                leaked += [(kind, key) for kind, key, _ in arrived if kind == "delete"]  # deletes carry no payload
+            assert not leaked, f"denied to {name} but arrived: {leaked}"
+    finally:
+        for session in sessions:
+            session.close()

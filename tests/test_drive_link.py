@@ -196,24 +196,27 @@ def test_heartbeat_loss_stops_reports_and_reconnects(rig: Rig) -> None:
         loop.stop()
 
 
-def test_fault_flag_stops_and_estop_release(rig: Rig) -> None:
+def test_controller_estop_is_taken_over_and_ends_only_by_release(rig: Rig) -> None:
     loop = make_loop(rig)
     loop.start()
     try:
         wait_for_sync(lambda: loop.link_ok, timeout_s=5)
+        assert not loop.estopped
         with rig.lock:
             rig.nodes[1]._estop()  # a hardware e-stop on one controller: FF bit 4 without our !EX
-        wait_for_sync(lambda: "node 2 fault flags 0x10" in loop.flag_fault, timeout_s=2)
+        wait_for_sync(lambda: loop.estopped, timeout_s=2, message="the controller's e-stop was not taken over")
+        assert loop.flag_fault == ""  # an e-stop is a state, not a fault
         with rig.lock:
-            rig.nodes[1]._release()
-        wait_for_sync(lambda: loop.flag_fault == "", timeout_s=2)
-        loop.estopped = True
+            rig.nodes[1]._release()  # the controller lets go on its own: the drive stays e-stopped
+        time.sleep(0.2)
+        assert loop.estopped
         assert loop.link.estop() == []
         assert all(n.estopped for n in rig.nodes)
-        time.sleep(0.1)
-        assert loop.flag_fault == ""  # our own e-stop is not a fault
         assert loop.link.release() == []
+        loop.released()
         assert not any(n.estopped for n in rig.nodes)
+        time.sleep(0.3)  # feedback sent before !MG arrived must not e-stop it again
+        assert not loop.estopped and loop.flag_fault == ""
     finally:
         loop.stop()
 

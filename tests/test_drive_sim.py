@@ -198,7 +198,9 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     d.forward(1.0, axis=1)
     odom, true = d.poses()
     rt, ro = relative(true0, true), relative(odom0, odom)
-    assert rt[1] == pytest.approx(1.0, abs=0.02) and abs(rt[0]) < 0.02 and abs(rt[2]) < 0.01
+    # how far past 1 m it coasts depends on this test's command latency (wall time, machine load), not on the
+    # drive: the drive is judged by the odometry agreeing with the truth, and by the motion staying sideways
+    assert rt[1] >= 0.98 and abs(rt[0]) < 0.02 and abs(rt[2]) < 0.01
     assert math.hypot(ro[0] - rt[0], ro[1] - rt[1]) <= 0.01 * rt[1] + 0.002
 
     # turning in place: heading changes, position does not
@@ -226,12 +228,19 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
         if max(b - a for a, b in zip(tail, tail[1:])) > 0.1 or not steady or not smooth:
             continue
         ramp = [w.stamp for w in d.wheel_log if w.stamp > sent_lo and w.modules[0].speed_cmd_mps < 0.199]
-        stopped = [g.stamp for g in d.truth_log if g.stamp > sent_lo and math.hypot(g.twist.vx, g.twist.vy) < 0.005]
-        assert ramp and stopped, "the robot never stopped after cmd_vel ended"
+        assert ramp, "the drive never began to decelerate after cmd_vel ended"
         assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the cmd"
         assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the cmd"
-        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs
-        assert decel - 0.1 <= stopped[0] - ramp[0] <= decel + 0.1, f"took {stopped[0] - ramp[0]:.2f} s to stop"
+        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs. Both
+        # ends are measured on one timeline, the simulator's ground truth (the drive's stamps follow its own view of
+        # the sim clock, which runs ahead of the truth's while the simulator is starved of CPU)
+        speeds = [(g.stamp, math.hypot(g.twist.vx, g.twist.vy)) for g in d.truth_log if g.stamp > sent_lo]
+        slowing = [t for t, v in speeds if v < 0.195]
+        stopped = [t for t, v in speeds if v < 0.005]
+        assert slowing and stopped, "the robot never stopped after cmd_vel ended"
+        expected = decel * (0.195 - 0.005) / 0.2
+        took = stopped[0] - slowing[0]
+        assert expected - 0.1 <= took <= expected + 0.1, f"took {took:.2f} s (sim) to slow from 0.195 to 0.005 m/s"
         break
     else:
         pytest.fail("the cmd_vel stream or the drive stuttered in every attempt (machine overloaded)")
@@ -259,13 +268,59 @@ def test_drive_killed_controllers_stop_through_their_watchdog(stack_factory) -> 
     # the stop came from the controllers, before any new drive instance could command them
     assert not relinked or stopped[0] < relinked[0]
     assert stopped[0] - killed_at <= 1.0 + 0.3 + 0.7, f"stopped {stopped[0] - killed_at:.2f} s (sim) after the kill"
-    # the supervisor restarts the drive, which reconnects and follows cmd_vel again
+    # the supervisor restarts the drive: it reconnects disabled and, with cmd_vel still streaming, does not move
     stack.wait_line(r"^zagv\s+\| started drive \(pid \d+\)", timeout_s=10, after=mark)
-    deadline = time.monotonic() + 30
-    while d.speed() < 0.15 and time.monotonic() < deadline:
+    stack.wait_line(r"^drive\s+\| .*restarted: the drive stays disabled", timeout_s=30, after=mark)
+    relinked_at = keep_sending_until(d, lambda: d.wheels.link_ok and not d.wheels.enabled, timeout_s=30,
+                                     message="the restarted drive never reported itself linked and disabled")
+    still_until = relinked_at + 3.0  # sim s of cmd_vel at 0.2 m/s that must not move the robot
+    keep_sending_until(d, lambda: d.sim_now >= still_until, timeout_s=30, message="the sim clock stalled")
+    with d.lock:
+        moved = [g for g in d.truth_log if g.stamp >= stopped[0] and math.hypot(g.twist.vx, g.twist.vy) >= 0.005]
+    assert not moved, f"the restarted drive moved without an enable ({len(moved)} samples, first at {moved[0].stamp})"
+    assert d.query("drive/enable").ok
+    keep_sending_until(d, lambda: d.speed() >= 0.15, timeout_s=30, message="no motion after the explicit enable")
+
+
+def keep_sending_until(d: Driver, cond, *, timeout_s: float, message: str) -> float:  # noqa: ANN001
+    """Stream cmd_vel (0.2 m/s forward) until ``cond()``; returns the sim time it held."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        assert time.monotonic() < deadline, message
         d.send(0.2, 0.0, 0.0)
         time.sleep(0.01)
-    assert d.speed() >= 0.15
+    return d.sim_now
+
+
+def test_drive_killed_while_estopped_comes_back_estopped(stack_factory) -> None:
+    """A SIGKILL while e-stopped: the new drive takes over the e-stop the controllers hold; only an explicit release
+    ends it, and the robot moves only after an explicit enable."""
+    stack = stack_factory(services=["sim", "drive"], world="empty_room", speed=2.0).start()
+    d = Driver(stack)
+    d.teleport(-3.0, 0.0, 0.0)
+    d.drive_until(0.2, lambda: d.speed() > 0.15)
+    assert d.query("drive/estop").ok
+    keep_sending_until(d, lambda: d.wheels.estopped and d.speed() < 0.005, timeout_s=30,
+                       message="the e-stop did not stop the robot")
+    mark = stack.line_count()
+    os.kill(stack.pid("drive"), signal.SIGKILL)
+    stack.wait_line(r"^zagv\s+\| started drive \(pid \d+\)", timeout_s=10, after=mark)
+    stack.wait_line(r"^drive\s+\| .*hold an e-stop: drive e-stopped until drive/release", timeout_s=30, after=mark)
+    keep_sending_until(d, lambda: d.wheels.link_ok and d.wheels.estopped and not d.wheels.enabled, timeout_s=30,
+                       message="the restarted drive forgot the e-stop")
+    refused = d.query("drive/enable")
+    assert not refused.ok and "release" in refused.message
+    since = d.sim_now
+    released = d.query("drive/release")
+    assert released.ok and "!MG" in released.message, released.message
+    # released but not enabled: cmd_vel still moves nothing
+    until = d.sim_now + 2.0
+    keep_sending_until(d, lambda: d.sim_now >= until and not d.wheels.estopped, timeout_s=30,
+                       message="the release did not end the e-stop")
+    with d.lock:
+        assert all(math.hypot(g.twist.vx, g.twist.vy) < 0.005 for g in d.truth_log if g.stamp >= since)
+    assert d.query("drive/enable").ok
+    keep_sending_until(d, lambda: d.speed() >= 0.15, timeout_s=30, message="no motion after release and enable")
 
 
 def test_can_bus_restart_fault_stop_reconnect_resume(stack_factory) -> None:

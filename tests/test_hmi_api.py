@@ -61,7 +61,8 @@ def test_login_and_openapi(hmi):
     r = anon.post("/api/login", json={"password": "not it"})
     assert r.status_code == 401 and r.headers["www-authenticate"].startswith("Bearer")
     assert anon.post("/api/login", json={"pass": "x"}).status_code == 422
-    doc = anon.get("/api/schema/openapi.json").json()
+    assert anon.get("/api/schema/openapi.json").status_code == 401  # the API description is behind login too
+    doc = client.get("/api/schema/openapi.json").json()
     assert doc["openapi"].startswith("3.")
     for _, path in MOTION_ENDPOINTS:
         templ = path.replace("/1/", "/{pose_id}/")

@@ -102,7 +102,7 @@ def test_message_round_trip_and_cell_geometry():
     ("image: m.pgm\nresolution: -1\norigin: [0, 0, 0]\n", "`resolution` must be > 0"),
     ("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\nmode: fancy\n", "`mode` must be one of"),
     ("image: bad.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n", "cannot read image"),
-    ("image: [unclosed\n", "YAML syntax error"),
+    ("image: [unclosed\n", "syntax error at line"),
 ])
 def test_bad_yaml_names_the_problem(tmp_path, yaml_text, needle):
     Image.fromarray(np.zeros((2, 2), dtype=np.uint8)).save(tmp_path / "m.pgm")

@@ -101,7 +101,7 @@ def call(session, keys, name: str, req: m.Message):  # noqa: ANN001, ANN201
 
 
 def test_goal_cancel_and_status_through_the_service(stack_factory) -> None:  # noqa: ANN001
-    stack = stack_factory(services=["nav"]).start()
+    stack = stack_factory(services=["nav"]).start(wait_ready=False)  # nav is ready once it has a map and a pose
     session = stack.session()
     keys = stack.keys
     robot = FakeRobot(session, keys)
@@ -113,6 +113,7 @@ def test_goal_cancel_and_status_through_the_service(stack_factory) -> None:  # n
         codec.decode_as(m.Path, s.payload.to_bytes())))
     robot.thread.start()
     try:
+        stack.wait_line(r"^zagv: ready", timeout_s=90)
         wait_for_sync(lambda: statuses, timeout_s=20, message="no nav/status")
         wait_for_sync(lambda: robot.t > 1.0, timeout_s=10)
         # rejections name the reason

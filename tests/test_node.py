@@ -8,7 +8,8 @@ import pytest
 
 from proto import Keys, encode
 from proto.messages import Empty, OccupancyGrid, Pose2D, Reply, Twist2D
-from services.common.node import Node, QueryError
+from services.common.node import Node
+from services.common.query import NoAnswer, QueryError
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 from tests.support.waiting import wait_for
@@ -101,3 +102,76 @@ async def test_latched_topic_reaches_late_joiner(client):
     assert got[0].width == 2
     pub_node.close()
     late.close()
+
+
+async def test_query_waits_for_a_queryable_that_appears_late(client):
+    keys = Keys("t4")
+    caller = Node("cli", client(), keys)
+    server = Node("srv", client(), keys)
+
+    async def declare_later() -> None:
+        await asyncio.sleep(0.5)  # the answerer comes after the question was asked
+        server.queryable("drive/enable", lambda req: Reply(ok=True, message="enabled"))
+
+    task = asyncio.get_running_loop().create_task(declare_later())
+    reply = await caller.query("drive/enable", timeout_s=30.0)
+    assert reply.ok and task.done()
+    server.close()
+    caller.close()
+
+
+async def test_query_error_names_the_key_and_the_real_wait(client):
+    caller = Node("cli", client(), Keys("t5"))
+    t0 = asyncio.get_running_loop().time()
+    with pytest.raises(NoAnswer) as err:
+        await caller.query("drive/enable", timeout_s=0.8)
+    waited = asyncio.get_running_loop().time() - t0
+    assert waited >= 0.8 and err.value.attempts > 1
+    assert "agv/t5/drive/enable" in str(err.value) and "no queryable answered" in str(err.value)
+    assert f"waited {err.value.waited_s:.1f} s" in str(err.value) and err.value.waited_s >= 0.75
+    caller.close()
+
+
+async def test_latched_topic_reaches_early_joiner_and_survives_a_producer_restart(client):
+    keys = Keys("t6")
+    consumer = Node("consumer", client(), keys)
+    got: list[OccupancyGrid] = []
+    consumer.subscribe("map", got.append, latched=True)  # before any producer exists
+    for width in (2, 3):  # a producer, then its restart with a new value
+        producer = Node("map_server", client(), keys)
+        pub = producer.publisher("map", latched=True)
+        # published before the consumer's link to it is known: only the fetch on appearance can deliver it
+        pub.put(OccupancyGrid(width=width, height=1, data=bytes(width)))
+        await wait_for(lambda w=width: got and got[-1].width == w, timeout_s=10)
+        producer.close()
+        producer.session.close()
+    consumer.close()
+
+
+async def test_health_token_only_once_ready(client):
+    keys = Keys("t7")
+    observer = client()
+    node = Node("drive", client(), keys)
+
+    def alive() -> bool:
+        return any(r.ok is not None for r in observer.liveliness().get(keys.health("drive"), timeout=0.5))
+
+    node.queryable("drive/enable", lambda req: Reply(ok=True))
+    assert not alive(), "a health token before the service said it is ready"
+    node.ready("CAN link up")
+    await wait_for(alive, timeout_s=10, poll_s=0.1)
+    node.close()
+
+
+async def test_a_large_latched_message_published_once_after_a_slow_start_arrives(client):
+    keys = Keys("t8")
+    consumer = Node("nav", client(), keys)
+    got: list[OccupancyGrid] = []
+    consumer.subscribe("map", got.append, latched=True)
+    producer = Node("localization", client(), keys)
+    pub = producer.publisher("map", latched=True)  # the queryable appears with nothing to serve yet
+    await asyncio.sleep(1.0)  # the producer loading its map: the consumer's fetch found no value
+    pub.put(OccupancyGrid(width=640, height=350, data=bytes(640 * 350)))  # once, 224 kB: must not be dropped
+    await wait_for(lambda: got and got[-1].width == 640, timeout_s=10)
+    producer.close()
+    consumer.close()

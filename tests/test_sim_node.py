@@ -9,7 +9,7 @@ import pytest
 import serial
 
 from proto.messages import Clock, GroundTruth, ObstacleRequest, Pose2D, TeleportRequest
-from services.common.node import query
+from services.common.query import query
 from tests.support.waiting import wait_for
 
 pytestmark = pytest.mark.integration

@@ -130,9 +130,13 @@ def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) ->
     assert m.is_solid(1.0 + 3.5, 2.0 + (40 - 15) * 0.1)  # the unknown patch (image rows 10..19 from the top)
     assert not m.is_solid(1.0 + 1.0, 2.0 + 1.0)
     assert m.is_solid(1.0 + 1.0, 2.0 + 3.95)  # image row 0 = top = max y
-    (tmp_path / "bad.yaml").write_text("image: m.png\nresolution: 0.1\norigin: [0, 0, 0.5]\n")
-    with pytest.raises(WorldError, match="yaw"):
-        World.load_map_yaml(tmp_path / "bad.yaml")
+    # a yawed origin is resampled onto the axis-aligned raster covering the turned map (outside it: solid)
+    (tmp_path / "turned.yaml").write_text("image: m.png\nresolution: 0.1\norigin: [0, 0, 0.5]\n")
+    turned = World.load_map_yaml(tmp_path / "turned.yaml")
+    c, s = math.cos(0.5), math.sin(0.5)
+    assert not turned.is_solid(c * 1.0 - s * 1.0, s * 1.0 + c * 1.0)  # map (1, 1) is free, as above
+    assert turned.is_solid(c * 3.5 - s * 2.5, s * 3.5 + c * 2.5)  # the unknown patch
+    assert turned.is_solid(turned.origin_xy[0] + 0.05, turned.origin_xy[1] + 0.05)  # a corner off the map
     with pytest.raises(WorldError, match="missing.yaml"):
         World.load_map_yaml(tmp_path / "missing.yaml")
 

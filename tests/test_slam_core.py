@@ -161,7 +161,7 @@ def test_parse_carmen_flaser_and_robotlaser():
         "ODOM 1.0 2.0 0.0 0 0 0 100.0 host 0.1",
         "FLASER 5 1.00 2.00 81.91 3.00 4.00 10.0 20.0 0.5 11.0 21.0 0.6 1134864629.895182 b21 0.086295",
         "ROBOTLASER1 0 -1.5708 3.14159 0.785398 81.9 0.01 0 5 1.0 2.0 3.0 4.0 5.0 0 "
-        "0.1 0.0 0.0 12.0 22.0 0.7 0.0 0.0 0.5 0.5 0.0 1134864630.000000 b21 0.2",
+        "12.152968 22.128844 0.7 12.0 22.0 0.7 0.0 0.0 0.5 0.5 0.0 1134864630.000000 b21 0.2",
     ]
     log = parse_carmen(lines)
     assert len(log.scans) == 2
@@ -172,5 +172,6 @@ def test_parse_carmen_flaser_and_robotlaser():
     np.testing.assert_allclose(first.odom_pose, [11.0, 21.0, 0.6])
     np.testing.assert_allclose(second.odom_pose, [12.0, 22.0, 0.7])
     assert second.max_range_m == pytest.approx(81.9)
+    np.testing.assert_allclose(log.sensor_pose, [0.2, 0.0, 0.0], atol=1e-5)  # robot⁻¹ ⊕ laser of ROBOTLASER1
     with pytest.raises(ValueError, match="line 1: malformed FLASER"):
         parse_carmen(["FLASER 5 1.0 2.0"])

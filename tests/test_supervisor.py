@@ -2,23 +2,15 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import sys
 
 from services.cli.supervisor import ChildSpec, Supervisor
+from tests.support.processes import process_alive
 from tests.support.waiting import wait_for
 
 SLEEPER = [sys.executable, "-c", "import time; print('child up', flush=True); time.sleep(600)"]
 
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    with open(f"/proc/{pid}/stat") as f:
-        return f.read().split()[2] != "Z"
 
 
 async def test_killed_child_is_restarted_and_logged():
@@ -34,7 +26,7 @@ async def test_killed_child_is_restarted_and_logged():
     await wait_for(lambda: sum("child up" in x for x in lines) == 2, timeout_s=10)
     second = state.pid
     await sup.stop()
-    assert not _alive(first) and not _alive(second)
+    assert not process_alive(first) and not process_alive(second)
     assert all(line.startswith(("worker", "zagv")) for line in lines)
 
 
@@ -47,4 +39,4 @@ async def test_child_that_ignores_sigterm_is_killed_on_stop():
     await wait_for(lambda: any(" up" in x for x in lines), timeout_s=10)
     pid = state.pid
     await sup.stop(timeout_s=0.5)
-    assert pid is not None and not _alive(pid)
+    assert pid is not None and not process_alive(pid)

@@ -28,6 +28,7 @@ from services.lidar.config import LidarConfig
 from services.localization.config import LocalizationConfig
 from services.nav.config import CostmapConfig, NavConfig
 from services.nav.dwa import DwaConfig
+from services.safety.config import SafetyConfig
 from services.sim.config import SimConfig
 from services.vda5050.config import Vda5050Config
 
@@ -42,10 +43,11 @@ CONFIG_TABLES: dict[str, list[tuple[str, type[msgspec.Struct]]]] = {
     "localization": [("localization", LocalizationConfig)],
     "nav": [("nav", NavConfig), ("nav.global_costmap / nav.local_costmap", CostmapConfig), ("nav.dwa", DwaConfig)],
     "sim": [("sim", SimConfig)],
+    "safety": [("safety", SafetyConfig)],
     "vda5050": [("vda5050", Vda5050Config)],
 }
 #: services whose README carries a generated key block
-KEYED_SERVICES = ("drive", "lidar", "localization", "nav", "sim", "vda5050")
+KEYED_SERVICES = ("drive", "lidar", "localization", "nav", "safety", "sim", "vda5050")
 
 
 def _marker(kind: str, edge: str) -> str:

@@ -42,6 +42,9 @@ def bench_slam() -> list[BenchRow]:
         BenchRow("slam.scan_ms", 1e3 * run.processing_s / run.n_scans, "ms", "per scan, fr079"),
         BenchRow("slam.fr079_translation_error_m", error.translation_mean_m, "m", "< 0.061 (gmapping), 0.056 graph"),
         BenchRow("slam.fr079_rotation_error_rad", error.rotation_mean_rad, "rad", "Kümmerle 2009 metric"),
+        BenchRow("slam.fr079_closures_accepted", len(run.slam.loop_closures), "", "loop closures in the graph"),
+        BenchRow("slam.fr079_closures_rejected", len(run.slam.rejected_closures), "",
+                 "inconsistent or contradicting the graph"),
     ]
 
 

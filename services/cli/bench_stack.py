@@ -18,11 +18,11 @@ from proto import codec
 from proto.messages import Clock, Pose2D, Waypoint, WaypointsRequest
 from services.cli.stack_process import Stack
 from services.common.bench import BenchRow
-from services.common.node import query
+from services.common.query import query
 
 #: corridor goals of the paper's Table 3, driven in order while measuring
 CORRIDOR_ROUTE = [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (13.6, 3.2, -1.0), (24.4, 3.5, 1.57)]
-SERVICES = ["drive", "lidar", "localization", "nav", "hmi_api"]
+SERVICES = ["drive", "lidar", "safety", "localization", "nav", "hmi_api"]
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 

@@ -1,11 +1,18 @@
-"""Zenoh transport benchmarks: latency through the router and LaserScan throughput.
+"""Zenoh transport benchmarks: latency and LaserScan throughput between two services, per topology.
 
-Three processes on loopback: a router (``zagv router``), an echo peer (``python -m services.cli.bench_zenoh echo``)
-and the measuring process. Latency: a 64 B (or 10 kB) message goes ping -> router -> echo -> router -> ping; each
-reply is handled, and the next ping sent, directly on Zenoh's network thread (``Callback(indirect=False)``), so
-no Python thread wake-up sits on the path. One-way latency = round trip / 2.
-Throughput: LaserScan-sized messages (541 float32 ranges, msgpack) published back to back with congestion
-control BLOCK; the echo peer decodes and counts them.
+Three processes on loopback: a router (``zagv router``), an echo process (``python -m services.cli.bench_zenoh
+echo``) and the measuring process, in each topology:
+
+- ``zenoh.*`` (what ``zagv up`` runs): the router with the settings ``zagv up`` embeds, both ends with the services'
+  default settings (clients: every message through the router);
+- ``zenoh.systemd.*``: the router with ``deploy/zenoh/router-loopback.json5`` and both ends with the ``[zenoh]`` table
+  of ``deploy/robot.example.toml``, as the systemd units run them;
+- ``zenoh.peer.*``: both ends peers (``[zenoh] mode = "peer"``): discovery through the router, data directly.
+
+Latency: a 64 B (or 10 kB) message goes ping -> echo -> ping; each reply is handled, and the next ping sent,
+directly on Zenoh's network thread (``Callback(indirect=False)``), so no Python thread wake-up sits on the path.
+One-way latency = round trip / 2. Throughput: LaserScan-sized messages (541 float32 ranges, msgpack) published back
+to back with congestion control BLOCK; the echo process decodes and counts them.
 """
 
 from __future__ import annotations
@@ -16,7 +23,10 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
+from pathlib import Path
 
+import msgspec
 import numpy as np
 import zenoh
 
@@ -28,6 +38,21 @@ from services.common.session import open_session
 from services.common.settings import ZenohSettings
 
 PING, PONG, SCAN, COUNT = "bench/ping", "bench/pong", "bench/scan", "bench/count"
+REPO_ROOT = Path(__file__).resolve().parents[2]
+DEPLOY = REPO_ROOT / "deploy"
+
+
+def topology(name: str, endpoint: str) -> tuple[list[str], ZenohSettings]:
+    """(extra ``zagv router`` arguments, the two ends' settings) of a topology (module docstring)."""
+    if name == "up":
+        return [], ZenohSettings(connect=[endpoint])
+    if name == "peer":
+        return [], ZenohSettings(mode="peer", connect=[endpoint])
+    if name == "systemd":
+        table = tomllib.loads((DEPLOY / "robot.example.toml").read_text())["zenoh"]
+        settings = msgspec.convert({**table, "connect": [endpoint]}, ZenohSettings)
+        return ["--config", str(DEPLOY / "zenoh" / "router-loopback.json5")], settings
+    raise ValueError(f"unknown topology {name!r} (up, peer, systemd)")
 
 
 def _free_port() -> int:
@@ -38,10 +63,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def echo_main(endpoint: str) -> None:
-    """The echo peer: answers pings on the network thread; counts decoded scans; replies the count."""
+def echo_main(settings_json: str) -> None:
+    """The echo process: answers pings on the network thread; counts decoded scans; replies the count."""
     die_with_parent()
-    session = open_session(ZenohSettings(connect=[endpoint]))
+    session = open_session(msgspec.json.decode(settings_json, type=ZenohSettings))
     pong = session.declare_publisher(PONG, express=True)
     scans = 0
 
@@ -69,21 +94,31 @@ def echo_main(endpoint: str) -> None:
 
 
 class _Peers:
-    """Router and echo subprocesses for one benchmark run."""
+    """Router and echo subprocesses for one benchmark run in one topology."""
+
+    def __init__(self, name: str = "up") -> None:
+        self.name = name
 
     def __enter__(self) -> _Peers:
         port = _free_port()
         self.endpoint = f"tcp/127.0.0.1:{port}"
+        router_args, settings = topology(self.name, self.endpoint)
         env = {**os.environ, "ZAGV_PARENT_PID": str(os.getpid())}
-        self.router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", self.endpoint],
-                                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+        self.router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", self.endpoint,
+                                        *router_args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
+                                       cwd=REPO_ROOT)
         assert self.router.stdout is not None
         self.router.stdout.readline()  # "listening on ..."
-        self.echo = subprocess.Popen([sys.executable, "-m", "services.cli.bench_zenoh", "echo", self.endpoint],
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
+        self.echo = subprocess.Popen([sys.executable, "-m", "services.cli.bench_zenoh", "echo",
+                                      msgspec.json.encode(settings).decode()],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, cwd=REPO_ROOT)
         assert self.echo.stdout is not None
         self.echo.stdout.readline()  # "echo ready"
-        self.session = open_session(ZenohSettings(connect=[self.endpoint]))
+        self.session = open_session(settings)
+        if settings.mode == "peer":  # let the direct link come up before measuring (else the first pings detour)
+            deadline = time.monotonic() + 10.0
+            while not list(self.session.info.peers_zid()) and time.monotonic() < deadline:
+                time.sleep(0.05)
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -154,16 +189,22 @@ def scan_throughput(session: zenoh.Session, duration_s: float = 2.0) -> float:
 
 
 def bench_zenoh() -> list[BenchRow]:
-    with _Peers() as peers:
-        small = round_trips(peers.session, 64, 5000)
-        large = round_trips(peers.session, 10_000, 2000)
-        rate = scan_throughput(peers.session)
-    return [
-        BenchRow("zenoh.latency_p50_us", float(np.percentile(small, 50) * 1e6), "us", "<= 100"),
-        BenchRow("zenoh.latency_p99_us", float(np.percentile(small, 99) * 1e6), "us"),
-        BenchRow("zenoh.latency_10k_p50_us", float(np.percentile(large, 50) * 1e6), "us"),
-        BenchRow("zenoh.scan_msgs_per_s", rate, "msg/s"),
-    ]
+    rows = []
+    for name, prefix in (("up", "zenoh"), ("systemd", "zenoh.systemd"), ("peer", "zenoh.peer")):
+        with _Peers(name) as peers:
+            small = round_trips(peers.session, 64, 5000)
+            large = round_trips(peers.session, 10_000, 2000)
+            rate = scan_throughput(peers.session)
+            direct = len(list(peers.session.info.peers_zid())) > 0
+        path = "peer to peer" if direct else "through the router"
+        rows += [
+            BenchRow(f"{prefix}.latency_p50_us", float(np.percentile(small, 50) * 1e6), "us",
+                     f"<= 100; 64 B one way, {path}" if name == "up" else f"64 B one way, {path}"),
+            BenchRow(f"{prefix}.latency_p99_us", float(np.percentile(small, 99) * 1e6), "us"),
+            BenchRow(f"{prefix}.latency_10k_p50_us", float(np.percentile(large, 50) * 1e6), "us"),
+            BenchRow(f"{prefix}.scan_msgs_per_s", rate, "msg/s"),
+        ]
+    return rows
 
 
 BENCHES = [("zenoh", bench_zenoh)]
@@ -172,6 +213,6 @@ BENCHES = [("zenoh", bench_zenoh)]
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(prog="python -m services.cli.bench_zenoh")
     parser.add_argument("role", choices=["echo"])
-    parser.add_argument("endpoint")
+    parser.add_argument("settings", help="the session's ZenohSettings as JSON")
     a = parser.parse_args()
-    echo_main(a.endpoint)
+    echo_main(a.settings)

@@ -16,7 +16,7 @@ import sys
 from proto import codec
 from proto import messages as m
 from services.cli.common import add_client_options, client_keys, client_session
-from services.common.node import QueryError, query
+from services.common.query import QueryError, query
 
 TERMINAL = ("succeeded", "failed", "canceled")
 
@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--id", default="", help="goal id (default: assigned by nav)")
     p.add_argument("--no-wait", action="store_true", help="return once the goal is accepted")
     p.add_argument("--timeout", type=float, default=0.0, help="cancel after T s of wall time (0: no limit)")
+    p.add_argument("--accept-timeout", type=float, default=30.0, metavar="S",
+                   help="wait up to S s for nav to take the goal (it answers once it has a map and a pose; "
+                        "default %(default)s)")
     p.set_defaults(func=run)
 
 
@@ -52,7 +55,7 @@ async def follow(args: argparse.Namespace) -> int:
             return 2
         req = m.GoalRequest(pose=m.Pose2D(x=args.x, y=args.y, theta=args.theta), id=args.id)
         try:
-            reply: m.GoalReply = await query(session, keys, "nav/goal", req, timeout_s=5.0)
+            reply: m.GoalReply = await query(session, keys, "nav/goal", req, timeout_s=args.accept_timeout)
         except QueryError as exc:
             print(f"zagv goal: {exc} (is nav running?)", file=sys.stderr)
             return 1

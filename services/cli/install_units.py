@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 #: the services that get a unit, in start order after the router
-SERVICES = ["drive", "lidar", "localization", "nav", "recorder", "hmi_api", "vda5050"]
+SERVICES = ["drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api", "vda5050"]
 DEFAULT_DEST = "/etc/systemd/system"
 DEFAULT_CONFIG = "/etc/zagv/robot.toml"
 DEFAULT_ZENOH_CONFIG = "/etc/zagv/zenoh/router-loopback.json5"

@@ -63,7 +63,19 @@ def add_eval(group: argparse._SubParsersAction) -> None:
     add_eval_parser(group)
 
 
-SUBCOMMANDS = [add_info, add_build, add_eval]
+def add_bench(group: argparse._SubParsersAction) -> None:
+    from services.cli.map_bench import add_bench_parser
+
+    add_bench_parser(group)
+
+
+def add_localize(group: argparse._SubParsersAction) -> None:
+    from services.cli.map_bench import add_localize_parser
+
+    add_localize_parser(group)
+
+
+SUBCOMMANDS = [add_info, add_build, add_eval, add_bench, add_localize]
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -86,7 +86,9 @@ def _run(args: argparse.Namespace, log=None):
     log = log or _read(args.log)
     run = run_slam(log, config, max_scans=args.max_scans)
     slam = run.slam
-    print(f"slam: {run.n_scans} scans, {slam.n_keyframes} keyframes, {len(slam.loop_closures)} loop closures, "
+    print(f"slam: {run.n_scans} scans, {slam.n_keyframes} keyframes, {len(slam.loop_closures)} loop closures "
+          f"accepted, {len(slam.rejected_closures)} rejected, {slam.fallback_matches} scans placed by odometry "
+          f"(match-quality gate), "
           f"{run.processing_s:.1f} s for {run.log_duration_s:.1f} s of log (x{run.realtime_factor:.1f} real time, "
           f"x{run.realtime_factor_cpu:.1f} by CPU time)",
           file=sys.stderr)
@@ -126,7 +128,9 @@ def run_eval(args: argparse.Namespace) -> int:
         extra = {"processing_s": run.processing_s, "log_duration_s": run.log_duration_s,
                  "realtime_factor": run.realtime_factor,
                  "processing_cpu_s": run.processing_cpu_s, "keyframes": run.slam.n_keyframes,
-                 "loop_closures": len(run.slam.loop_closures)}
+                 "loop_closures": len(run.slam.loop_closures),
+                 "loop_closures_rejected": len(run.slam.rejected_closures),
+                 "odometry_fallbacks": run.slam.fallback_matches}
     if not args.robot_frame:
         poses = scan_poses(poses, log.sensor_pose)
     try:

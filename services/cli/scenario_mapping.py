@@ -322,7 +322,7 @@ async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, s
     wall1 = time.monotonic()
     watch = NavMapWatch(c, load_map(map_yaml), since=c.sim_time - 0.25)  # localization's clock may trail ours
     try:
-        mode = await c.query("localization/mode", m.ModeRequest(mode="navigation", map_yaml=map_yaml),
+        mode = await c.query("localization/mode", m.ModeRequest(mode="navigation", map_yaml=save_as),
                              timeout_s=30.0)
         if not mode.ok:
             raise RuntimeError(f"localization/mode refused navigation on {map_yaml}: {mode.message}")

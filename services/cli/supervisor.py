@@ -2,9 +2,10 @@
 
 Each child runs in its own process; its output is prefixed with its name; a child that exits while the supervisor
 is running is restarted with exponential backoff (0.5 s doubling to 8 s, reset after 30 s of good running) and the
-exit is logged. Children get SIGTERM from the kernel if the supervisor dies (PR_SET_PDEATHSIG), so no orphan
-outlives it (each child arms that itself through ``services.common.lifetime``).
-``stop()`` sends SIGTERM, waits, then SIGKILLs what is left.
+exit is logged. Children get SIGKILL from the kernel if the supervisor dies (PR_SET_PDEATHSIG), so no orphan
+outlives it, even one blocked in a system call (each child arms that itself through ``services.common.lifetime``).
+Each start gets ``ZAGV_START_COUNT`` (1, 2, ...) so that a restarted service knows it is one (drive then stays
+disabled). ``stop()`` sends SIGTERM, waits a grace period, then SIGKILLs what is left.
 """
 
 from __future__ import annotations
@@ -100,8 +101,9 @@ class Supervisor:
 
     async def _spawn(self, state: ChildState) -> asyncio.subprocess.Process:
         spec = state.spec
-        # ZAGV_PARENT_PID lets the child ask the kernel for SIGTERM when we die (services.common.lifetime)
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "ZAGV_PARENT_PID": str(os.getpid()), **spec.env}
+        # ZAGV_PARENT_PID lets the child ask the kernel for SIGKILL when we die (services.common.lifetime)
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "ZAGV_PARENT_PID": str(os.getpid()),
+               "ZAGV_START_COUNT": str(state.starts + 1), **spec.env}
         proc = await asyncio.create_subprocess_exec(
             *spec.argv,
             stdin=asyncio.subprocess.DEVNULL,

@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import importlib.util
 import os
+import random
 import signal
 import socket
 import tempfile
@@ -29,7 +30,7 @@ from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
 #: services in start order; those whose package has no __main__ yet are skipped
-SERVICES = ["sim", "drive", "lidar", "localization", "nav", "recorder", "hmi_api"]
+SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -63,6 +64,10 @@ class StackPlan:
     external_router: str | None = None
     #: Foxglove WebSocket port of the foxglove_bridge service (0: the bridge is not started)
     foxglove_port: int = 0
+    #: start-order testing: shuffle the services' start order with this seed (the simulated CAN bus, being
+    #: hardware, stays first) and delay each start by a random 0..``start_delay_max_s`` s
+    start_seed: int | None = None
+    start_delay_max_s: float = 0.0
     #: VDA 5050 interface (services/vda5050), with an embedded MQTT broker on ``mqtt_port`` unless ``mqtt_embedded``
     #: is off (then the [vda5050] broker of the config is used)
     vda5050: bool = False
@@ -107,8 +112,11 @@ class StackPlan:
                      f"sim.speed_factor={self.speed}"]
             sets += [f"sim.map_yaml={_toml_str(self.map_yaml)}"] if self.map_yaml else \
                 [f"sim.world={_toml_str(self.world)}"]
-        elif name == "drive" and self.sim:
-            sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+        elif name == "drive":
+            if self.sim:
+                sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+            if "safety" not in self.services():  # a subset without the collision monitor (benches, tests)
+                sets += ["drive.command_source=\"cmd_vel\""]
         elif name == "lidar" and self.sim:
             sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port}"]
         elif name == "localization":
@@ -218,8 +226,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         where = "external router at" if plan.external_router else "router on"
         announce(f"zagv: {where} {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
         await loop.run_in_executor(None, render_world_map, plan)
-        for spec in plan.children():
-            supervisor.add(spec)
+        await start_children(plan, supervisor, stop, announce)
         started = time.monotonic()
         if expected <= watch.alive:  # nothing to wait for (or every token already up)
             ready.set()
@@ -248,6 +255,30 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     return code
 
 
+async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:  # noqa: ANN001
+    """Start every child, in the plan's order or (``start_seed``) in a random order with random delays."""
+    specs = plan.children()
+    if plan.start_seed is None:
+        for spec in specs:
+            supervisor.add(spec)
+        return
+    rng = random.Random(plan.start_seed)
+    hardware = [s for s in specs if s.name == "canbus"]
+    services = [s for s in specs if s.name != "canbus"]
+    rng.shuffle(services)
+    delays = [rng.uniform(0.0, plan.start_delay_max_s) for _ in services]
+    announce("zagv: start order " + ", ".join(f"{s.name} +{d:.1f} s" for s, d in zip(services, delays)))
+    for spec in hardware:
+        supervisor.add(spec)
+    for spec, delay in zip(services, delays):
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(stop.wait(), delay)  # wall time: process start-up, not robot time
+        if stop.is_set():
+            return
+        supervisor.add(spec)
+    announce(f"zagv: every service started ({services[-1].name} last)" if services else "zagv: nothing to start")
+
+
 def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sim", action="store_true", help="simulated robot: sim, CAN bus and LMS111 emulation")
     g = p.add_mutually_exclusive_group()
@@ -271,6 +302,10 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", help="comma-separated subset of services to start")
     p.add_argument("--foxglove-port", type=int, default=0,
                    help="serve Foxglove (WebSocket, 127.0.0.1) on this port (default: no Foxglove bridge)")
+    p.add_argument("--start-seed", type=int, help="start the services in a random order drawn with this seed "
+                                                   "(start-order testing)")
+    p.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
+                   help="with --start-seed: delay each service's start by a random 0..S s (default %(default)s)")
     p.add_argument("--vda5050", action="store_true", help="also start the VDA 5050 interface with an embedded MQTT "
                    "broker on 127.0.0.1 (services/vda5050)")
     p.add_argument("--mqtt-port", type=int, default=1883, help="embedded MQTT broker port (default %(default)s)")
@@ -287,6 +322,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         can_port=args.can_port, lidar_port=args.lidar_port, http_port=args.http_port, run_dir=run_dir,
         extra_sets=args.set, only=args.only.split(",") if args.only else None,
         external_router=getattr(args, "external_router", None), foxglove_port=getattr(args, "foxglove_port", 0),
+        start_seed=getattr(args, "start_seed", None), start_delay_max_s=getattr(args, "start_delay_max", 0.0),
         vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
         mqtt_embedded=not getattr(args, "no_embedded_broker", False),
     )

@@ -17,8 +17,8 @@ T = TypeVar("T")
 
 #: top-level tables a robot file may contain
 KNOWN_SECTIONS = frozenset(
-    {"robot", "zenoh", "clock", "drive", "lidar", "localization", "nav", "hmi_api", "sim", "launcher", "recorder",
-     "foxglove", "vda5050"}
+    {"robot", "zenoh", "clock", "liveness", "drive", "lidar", "localization", "nav", "hmi_api", "sim", "launcher",
+     "vda5050", "recorder", "foxglove"}
 )
 
 

@@ -3,8 +3,8 @@
 Zenoh delivers samples and queries on its own threads; ``Node`` decodes them there and hands typed messages to the
 service's event loop. Every payload is checked against the type its key carries (``proto.registry``); a payload
 that does not decode is logged (rate-limited), counted in ``bad_payloads`` and dropped, and the service keeps
-running. Latched topics (``map``) are served to late joiners by a queryable on the same key, which subscribers
-query once when they declare themselves.
+running. Latched topics (``map``, ``pose``, ``nav/status``, ...) are served to late joiners by a queryable on the
+same key, which latched subscribers query whenever such a queryable appears (``LatchedFetch``).
 """
 
 from __future__ import annotations
@@ -24,22 +24,25 @@ import zenoh
 from proto import codec
 from proto.keys import Keys
 from proto.messages import Message, Reply
+from services.common import systemd
 from services.common.clock import Clock, SimClock, WallClock
+from services.common.query import QueryError as QueryError  # re-exported for callers
+from services.common.query import query
 
 T = TypeVar("T", bound=Message)
 log = logging.getLogger("zagv.node")
 
 
-class QueryError(RuntimeError):
-    """A query that got no usable reply (timeout, no queryable, an error reply or a bad payload)."""
-
-
 class TopicPublisher:
     """Publishes one topic's messages; keeps the last one for late joiners when latched."""
 
-    def __init__(self, node: Node, name: str, latched: bool, express: bool) -> None:
+    def __init__(self, node: Node, name: str, latched: bool, express: bool, block: bool | None = None) -> None:
         self.key = node.keys(name)
-        self._pub = node.session.declare_publisher(self.key, express=express)
+        # latched state is published rarely and must arrive: block rather than drop under congestion (Zenoh's
+        # default drops, and a large message such as the map, sent once, would then be lost for good)
+        block = latched if block is None else block
+        congestion = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self._pub = node.session.declare_publisher(self.key, express=express, congestion_control=congestion)
         self._last: bytes | None = None
         self._queryable = None
         if latched:
@@ -64,6 +67,39 @@ class TopicPublisher:
             self._queryable.undeclare()
 
 
+class LatchedFetch:
+    """Fetches a latched topic's last value whenever a publisher's queryable for it appears, in any start order.
+
+    A Zenoh querier's matching listener reports when a queryable on the key comes (a producer started or
+    restarted, before or after this consumer); each time, the last value is asked for once. Values published
+    after the consumer's subscriber exists arrive through the subscriber itself.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None]) -> None:
+        self._on_sample = on_sample
+        self.fetches = 0
+        self._querier = session.declare_querier(key, timeout=5.0, consolidation=zenoh.ConsolidationMode.NONE)
+        self._listener = self._querier.declare_matching_listener(self._on_matching)
+        if self._querier.matching_status.matching:
+            self._fetch()
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        if status.matching:
+            self._fetch()
+
+    def _fetch(self) -> None:
+        self.fetches += 1
+        self._querier.get(zenoh.handlers.Callback(self._on_reply, lambda: None))
+
+    def _on_reply(self, reply: zenoh.Reply) -> None:
+        if reply.ok is not None:
+            self._on_sample(reply.ok)
+
+    def undeclare(self) -> None:
+        self._listener.undeclare()
+        self._querier.undeclare()
+
+
 class Node:
     """A service's Zenoh presence: typed pub/sub and queries on its loop, a clock and a health token."""
 
@@ -78,13 +114,41 @@ class Node:
         self._bad_logged_at: dict[str, float] = {}
         self._declared: list[Any] = []
         self._started_at = time.monotonic()
-        self._token = session.liveliness().declare_token(keys.health(name))
+        self._token: Any = None  # the health token: declared by ready()
+        self.ready_at: float | None = None
         self._stats = session.declare_queryable(keys(f"@stats/{name}"), self._serve_stats)
         self.extra_stats: dict[str, Any] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
         if isinstance(self.clock, SimClock):
             sim_clock = self.clock
             self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor))
+
+    def ready(self, inputs: str = "") -> None:
+        """Declare the health token and tell systemd READY=1 (idempotent).
+
+        Call it once every subscriber, queryable and publisher the service offers exists and its required inputs
+        are in hand (docs/readiness.md); ``inputs`` says which, for the log.
+        """
+        if self._token is not None:
+            return
+        self._token = self.session.liveliness().declare_token(self.keys.health(self.name))
+        self.ready_at = time.monotonic()
+        systemd.notify("READY=1")
+        self.log.info("ready after %.1f s%s", self.ready_at - self._started_at, f" ({inputs})" if inputs else "")
+
+    async def ready_when(self, condition: Callable[[], str | None], stop: asyncio.Event, poll_s: float = 0.05,
+                         declare: Callable[[], Any] | None = None) -> None:
+        """Wait (wall time) until ``condition()`` returns a description of the inputs in hand, then call
+        ``declare()`` (queryables that need those inputs to answer) and ``ready``."""
+        while not stop.is_set():
+            inputs = condition()
+            if inputs is not None:
+                if declare is not None:
+                    declare()
+                self.ready(inputs)
+                return
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), poll_s)
 
     def spawn(self, coro: Awaitable[Any]) -> asyncio.Task[Any]:
         """Run ``coro`` as a task on the loop, keeping a reference until it ends (loop thread only)."""
@@ -127,9 +191,11 @@ class Node:
 
     # ------------------------------------------------------------------ pub/sub
 
-    def publisher(self, name: str, *, latched: bool = False, express: bool = False) -> TopicPublisher:
-        """A publisher on ``agv/<id>/<name>``; ``latched`` serves the last message to late joiners."""
-        pub = TopicPublisher(self, name, latched, express)
+    def publisher(self, name: str, *, latched: bool = False, express: bool = False,
+                  block: bool | None = None) -> TopicPublisher:
+        """A publisher on ``agv/<id>/<name>``; ``latched`` serves the last message to late joiners and (unless
+        ``block`` is False: a large periodic message may be dropped) never drops one under congestion."""
+        pub = TopicPublisher(self, name, latched, express, block)
         self._declared.append(pub)
         return pub
 
@@ -175,12 +241,7 @@ class Node:
         key = self.keys(name)
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         if latched:
-
-            def on_reply(reply: zenoh.Reply) -> None:
-                if reply.ok is not None:
-                    on_sample(reply.ok)
-
-            self.session.get(key, on_reply, timeout=2.0)
+            self._declared.append(LatchedFetch(self.session, key, on_sample))
 
     def subscription(self, name: str, *, maxlen: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
         """An async iterator over messages on ``name`` keeping at most ``maxlen`` unread (oldest dropped)."""
@@ -228,6 +289,10 @@ class Node:
                     send(query, Reply(ok=False, message=f"{type(exc).__name__}: {exc}"))
                 else:
                     query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+            finally:
+                # finalise now: the logged traceback keeps this frame (and the query) alive, and the caller's
+                # consolidated reply would wait for the query's end until its timeout
+                query.drop()
 
         def on_query(query: zenoh.Query) -> None:
             raw = query.payload.to_bytes() if query.payload is not None else b""
@@ -245,13 +310,27 @@ class Node:
         self._declared.append(self.session.declare_queryable(key, on_query))
 
     async def query(self, name: str, request: Message | None = None, *, timeout_s: float = 2.0) -> Any:
-        """Send a query and return the first reply decoded as the query's reply type; raises QueryError."""
+        """``services.common.query.query`` on this node's session: waits for an answerer until ``timeout_s``."""
         return await query(self.session, self.keys, name, request, timeout_s=timeout_s)
 
     # ------------------------------------------------------------------ lifetime
 
+    def withdraw_health(self) -> None:
+        """Undeclare the health token (any thread): the liveness watchdog saw the event loop stop turning."""
+        token, self._token = self._token, None
+        if token is not None:
+            with contextlib.suppress(Exception):
+                token.undeclare()
+
+    def restore_health(self) -> None:
+        """Declare the health token again after :meth:`withdraw_health` (loop thread); never before ``ready``."""
+        if self._token is None and self.ready_at is not None:
+            self._token = self.session.liveliness().declare_token(self.keys.health(self.name))
+
     def close(self) -> None:
         for d in [*reversed(self._declared), self._stats, self._token]:
+            if d is None:
+                continue
             with contextlib.suppress(Exception):  # already gone with the session
                 (d.close if isinstance(d, TopicPublisher) else d.undeclare)()
         self._declared.clear()
@@ -263,36 +342,3 @@ def _default_request(t: type[T], key: str) -> T:
         return t()
     except TypeError:
         raise codec.ProtoDecodeError(key, t.__name__, "empty payload; this query needs arguments") from None
-
-
-async def query(
-    session: zenoh.Session, keys: Keys, name: str, request: Message | None = None, *, timeout_s: float = 2.0
-) -> Any:
-    """Query ``name`` on ``session`` from asyncio; the reply is decoded as the registered reply type."""
-    req_type, rep_type = codec.query_types(name)
-    key = keys(name)
-    loop = asyncio.get_running_loop()
-    fut: asyncio.Future[Any] = loop.create_future()
-    payload = codec.encode(request if request is not None else req_type())
-
-    def settle(value: Any, is_error: bool) -> None:
-        if not fut.done():
-            (fut.set_exception if is_error else fut.set_result)(value)
-
-    def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is not None:
-            try:
-                msg = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
-                loop.call_soon_threadsafe(settle, msg, False)
-            except codec.ProtoDecodeError as exc:
-                loop.call_soon_threadsafe(settle, QueryError(str(exc)), True)
-        else:
-            text = reply.err.payload.to_bytes().decode(errors="replace")
-            loop.call_soon_threadsafe(settle, QueryError(f"{key}: {text}"), True)
-
-    def on_done() -> None:
-        error = QueryError(f"no reply to {key} (no queryable answered within {timeout_s} s)")
-        loop.call_soon_threadsafe(settle, error, True)
-
-    session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=payload, timeout=timeout_s)
-    return await fut

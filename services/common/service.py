@@ -23,12 +23,13 @@ from proto.keys import Keys
 from services.common import systemd
 from services.common.clock import SimClock, WallClock
 from services.common.config import ConfigError
-from services.common.lifetime import die_with_parent
+from services.common.lifetime import die_with_parent, supervisor_pid
+from services.common.liveness import LivenessLimits, LoopWatchdog
 from services.common.logs import setup_logging
 from services.common.node import Node
 from services.common.robot import RobotSpec
 from services.common.session import open_session
-from services.common.settings import ClockSettings, ZenohSettings
+from services.common.settings import ClockSettings, LivenessSettings, ZenohSettings
 
 log = logging.getLogger("zagv.service")
 
@@ -63,6 +64,7 @@ def parse_args(name: str, argv: list[str] | None) -> argparse.Namespace:
 def load_config(
     name: str, sections: dict[str, type], args: argparse.Namespace
 ) -> tuple[RobotSpec, ZenohSettings, ClockSettings, dict[str, Any]]:
+    """Robot spec, Zenoh and clock settings and the service's tables (``[liveness]`` among them when valid)."""
     import tomllib
 
     from services.common.config import check_sections, convert_section, read_toml
@@ -88,6 +90,7 @@ def load_config(
     robot = convert_section(data, "robot", RobotSpec, source)
     zenoh_settings = convert_section(data, "zenoh", ZenohSettings, source)
     clock_settings = convert_section(data, "clock", ClockSettings, source)
+    sections = {"liveness": LivenessSettings, **sections}
     tables = {sec: convert_section(data, sec, t, source) for sec, t in sections.items()}
     if args.robot_id:
         robot = msgspec.structs.replace(robot, robot_id=args.robot_id)
@@ -143,14 +146,22 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
         loop.add_signal_handler(sig, on_signal, sig)
     watchdog = None
     period = systemd.watchdog_period_s()
+    settings: LivenessSettings = tables.get("liveness") or LivenessSettings()
+    limits = LivenessLimits.for_service(name, settings.stall_s, settings.kill_s)
+    if period:  # under systemd, WatchdogSec is the limit: the kill comes from systemd then
+        limits.kill_s = max(limits.stall_s, min(limits.kill_s, 2 * period))
+    liveness = LoopWatchdog(name, loop, limits, on_stall=node.withdraw_health, on_recover=node.restore_health,
+                            parent_pid=supervisor_pid())
+    liveness.start()
     if period:
         async def feed() -> None:
             while True:
-                systemd.notify("WATCHDOG=1")
+                if node.ready_at is not None:  # keep-alives follow READY=1 (sent by Node.ready)
+                    systemd.notify("WATCHDOG=1")
                 await asyncio.sleep(period)
 
         watchdog = loop.create_task(feed())
-    systemd.notify("READY=1")
+    # READY=1 comes with the health token, from the service itself once it is ready (Node.ready)
     node.log.info("started (robot %s, %s clock)", robot.robot_id, "sim" if clock_settings.use_sim_time else "wall")
     runner = loop.create_task(run(ctx))
     stopper = loop.create_task(ctx.stop.wait())
@@ -169,6 +180,7 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
         runner.cancel()
     finally:
         stopper.cancel()
+        liveness.stop()
         if watchdog:
             watchdog.cancel()
         systemd.notify("STOPPING=1")

@@ -1,4 +1,18 @@
-"""Zenoh session factory: router, peer or client on explicit endpoints, multicast scouting off."""
+"""Zenoh session factory: router, peer or client on explicit endpoints, multicast scouting off.
+
+The data path is rmw_zenoh's: services are peers that connect to the router and listen on an ephemeral loopback
+port (``tcp/127.0.0.1:0``); the router tells each peer, by gossip over the links it already has (never multicast),
+where the others listen, and the peers then exchange data directly (one socket hop instead of two, no router
+process in between). The router stays the rendezvous for discovery, for clients (command-line tools, remote hosts
+over TLS, which its access control governs) and for liveliness. A router config must therefore keep gossip on
+(deploy/zenoh/*.json5); with it off, peers would not find each other.
+
+Large payloads (map, costmap, particles, above ``transport/shared_memory/transport_optimization/
+message_size_threshold``) travel through POSIX shared memory between peers of one host: zenoh copies them into its
+SHM pool and sends a reference, negotiated per link, falling back to the socket when the other side cannot map the
+segment (another user, a private /dev under systemd). When ``/dev/shm`` is not writable here, SHM is switched off at
+once (:func:`shm_usable`).
+"""
 
 from __future__ import annotations
 
@@ -8,6 +22,15 @@ import os
 import zenoh
 
 from services.common.settings import ZenohSettings
+
+#: where a peer listens when its settings name no endpoint: loopback, a port the kernel picks
+PEER_LISTEN_DEFAULT = "tcp/127.0.0.1:0"
+SHM_DIR = "/dev/shm"
+
+
+def shm_usable(path: str) -> bool:
+    """Whether POSIX shared memory can be created here (zenoh's SHM pool lives in ``/dev/shm``)."""
+    return os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
@@ -22,9 +45,19 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
                                                           if settings.listen else []))
     if settings.listen:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
-    elif settings.mode != "client":
-        # a peer/router listens only where told to; never on every interface by default
+    elif settings.mode == "peer":
+        # reachable by the other peers of this host only, never on another interface
+        conf.insert_json5("listen/endpoints", json.dumps([PEER_LISTEN_DEFAULT]))
+    elif settings.mode == "router":
+        # a router listens only where told to; never on every interface by default
         conf.insert_json5("listen/endpoints", json.dumps([]))
+    if settings.mode != "client" and json.loads(conf.get_json("scouting/gossip/enabled")) is None:
+        # gossip over existing links only (no multicast): the router passes on where peers listen, peers dial
+        # each other; the router itself dials no one. A config file that sets gossip keeps its choice.
+        conf.insert_json5("scouting/gossip", json.dumps(
+            {"enabled": True, "multihop": False, "autoconnect": {"router": [], "peer": ["router", "peer"]}}))
+    if not shm_usable(SHM_DIR):
+        conf.insert_json5("transport/shared_memory/enabled", "false")
     # extra json5 keys ([zenoh.options] table, then $ZAGV_ZENOH_OPTIONS as a JSON object for a whole stack)
     extra = dict(settings.options)
     extra.update(json.loads(os.environ.get("ZAGV_ZENOH_OPTIONS", "{}")))

@@ -1,4 +1,4 @@
-"""Settings every service shares: the Zenoh connection and the clock source."""
+"""Settings every service shares: the Zenoh connection, the clock source and the liveness watchdog."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
     """How a process joins the robot's Zenoh network ([zenoh] table).
 
     Multicast scouting is always off: sessions connect to the explicit ``connect`` endpoints only.
-    ``config_file`` (json5) is applied first, then these keys.
+    ``config_file`` (json5) is applied first, then these keys. ``client`` (the default): everything through the
+    router; ``peer`` (rmw_zenoh's data path, opt-in): the router serves discovery and remote clients, data goes
+    directly between the processes of one host.
     """
 
     mode: Literal["client", "peer", "router"] = "client"
@@ -26,3 +28,18 @@ class ClockSettings(msgspec.Struct, forbid_unknown_fields=True):
     """Clock source ([clock] table): wall time, or the simulator's ``clock`` topic when ``use_sim_time``."""
 
     use_sim_time: bool = False
+
+
+class LivenessSettings(msgspec.Struct, forbid_unknown_fields=True):
+    """The event-loop watchdog ([liveness] table, ``services.common.liveness``): after ``stall_s`` without a turn
+    of the loop the health token is withdrawn, after ``kill_s`` the process kills itself to be restarted.
+    0 takes the service's default."""
+
+    stall_s: float = 0.0
+    kill_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("stall_s", "kill_s"):
+            value = getattr(self, name)
+            if not (value >= 0 and value < float("inf")):
+                raise ValueError(f"liveness.{name} must be a finite number >= 0, got {value}")

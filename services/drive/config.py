@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import msgspec
 
@@ -41,6 +42,9 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     realtime_priority: int = 0
     rpdo_refresh_s: float = 0.0
     cmd_timeout_s: float = 0.2
+    #: where velocity commands come from: ``safety/cmd_vel`` (the collision monitor's output: nothing reaches the
+    #: wheels without passing it) or ``cmd_vel`` (straight from nav and the HMI; for a bench without a laser)
+    command_source: Literal["safety/cmd_vel", "cmd_vel"] = "safety/cmd_vel"
     publish_hz: float = 50.0
     auto_enable: bool = True
     fault_mask: int = 0x7F

@@ -6,6 +6,11 @@ command watchdogs); TPDO feedback -> FK -> odometry. A lost link (heartbeat, bus
 flag, disable or e-stop make the cycle command zero speed; a reconnect thread reopens the link with exponential
 backoff while the loop keeps publishing (``link_ok`` false, the fault text set). Odometry continues from its pose.
 
+The controllers hold their own e-stop (``!EX``, fault flag bit 4), which outlives this process: a controller that
+reports it while the drive is not e-stopped (a drive restarted after an e-stop, or the controller's own e-stop
+input) puts the drive in the e-stopped state, so that only an explicit ``drive/release`` (``!MG``) ends it. For
+``RELEASE_GRACE_S`` after a release the flag is still expected in feedback sent before ``!MG`` arrived.
+
 Timing: ``WallTicker`` sleeps to just before each deadline and spins the rest (the period is measured with
 ``perf_counter``); ``SimTicker`` follows the simulator's clock messages (sim seconds). A new ``cmd_vel`` can wake
 the loop for an immediate extra cycle (``wake_on_command``), so a command reaches the bus without waiting for the
@@ -31,6 +36,9 @@ from services.drive.controller import CommandResult, DriveController, ModuleFeed
 from services.drive.kinematics import ZERO_TWIST, Twist
 
 log = logging.getLogger("zagv.drive.loop")
+
+#: after a release, feedback may show the controllers' e-stop flag for this long (ticker s) before it is believed
+RELEASE_GRACE_S = 1.0
 
 
 # --------------------------------------------------------------------------- timing
@@ -225,12 +233,14 @@ class DriveLoop:
         self.stats = LoopStats(ticker.period_s)
         self.enabled = enabled
         self.estopped = False
+        self._released_at = -math.inf
         self.link: RoboteqLink | None = None
         self.link_ok = False
         self.link_fault = "CAN link not yet open"
         self.flag_fault = ""
         self.cmd_rejected = 0
         self.reconnects = 0
+        self.link_attempts = 0  #: CAN link openings tried (readiness: the link is up or reported down)
         self.cycle_errors = 0
         self._cmd: Twist | None = None
         self._cmd_at = -math.inf
@@ -275,6 +285,22 @@ class DriveLoop:
     def set_imu_yaw_rate(self, wz_radps: float) -> None:
         if math.isfinite(wz_radps):
             self._imu_rate = (wz_radps, time.monotonic())
+
+    def released(self) -> None:
+        """The controllers acknowledged ``!MG``: leave the e-stopped state (enable stays as it was)."""
+        self.controller.reset()
+        self._released_at = self.ticker.now()
+        self.estopped = False
+
+    def _adopt_controller_estop(self, now: float, feedback: list[ModuleFeedback]) -> None:
+        """A controller that holds an e-stop puts the drive in the e-stopped state (see the module docstring)."""
+        if self.estopped or now - self._released_at < RELEASE_GRACE_S:
+            return
+        held = [node_id for node_id, f in zip(self._node_ids(), feedback) if f.fault_flags & FF_ESTOP]
+        if held:
+            self.estopped = True
+            log.warning("controller node(s) %s hold an e-stop: drive e-stopped until drive/release",
+                        ", ".join(map(str, held)))
 
     # ------------------------------------------------------------------ lifetime
 
@@ -348,7 +374,8 @@ class DriveLoop:
             # was down is still integrated (a restarted counter shows as an implausible step and is re-baselined)
             self.controller.reset(angles)
             self._needs_reset = False
-        self.flag_fault = self._check_flags(feedback)
+        self._adopt_controller_estop(now, feedback)
+        self.flag_fault = self._check_flags(feedback, now)
 
         with self._cmd_lock:
             cmd, cmd_at, cmd_rx = self._cmd, self._cmd_at, self._cmd_rx_perf
@@ -386,11 +413,11 @@ class DriveLoop:
             return snap
         return None
 
-    def _check_flags(self, feedback: list[ModuleFeedback]) -> str:
+    def _check_flags(self, feedback: list[ModuleFeedback], now: float) -> str:
         faults = []
         for node_id, f in zip(self._node_ids(), feedback):
             ff = f.fault_flags & self.settings.fault_mask
-            if self.estopped:
+            if self.estopped or now - self._released_at < RELEASE_GRACE_S:
                 ff &= ~FF_ESTOP
             if ff:
                 faults.append(f"node {node_id} fault flags 0x{ff:02X}" + (" (emergency stop)" if ff & FF_ESTOP
@@ -450,6 +477,7 @@ class DriveLoop:
                 if attempt == 1 or attempt % 10 == 0:
                     log.warning("CAN link attempt %d failed: %s", attempt, exc)
                 self.link_fault = str(exc)
+                self.link_attempts += 1
                 continue
             if self.estopped:
                 failures = link.estop()
@@ -459,6 +487,7 @@ class DriveLoop:
             self.link = link
             self.link_fault = ""
             self.link_ok = True
+            self.link_attempts += 1
             if not initial:
                 self.reconnects += 1
             log.info("CAN link %s after %d attempt(s)", "up" if initial else "restored", attempt)

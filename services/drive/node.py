@@ -3,7 +3,9 @@
 Topics: subscribes ``cmd_vel`` (on Zenoh's thread, straight into the loop), and ``clock`` in sim mode; publishes
 ``odom`` and ``wheels`` at ``drive.publish_hz`` (from the loop thread) and ``imu`` when ``drive.imu_port`` is set.
 Queries (explicit ``Reply``): ``drive/enable``, ``drive/disable``, ``drive/estop`` (``!EX`` on every controller),
-``drive/release`` (``!MG``).
+``drive/release`` (``!MG``). A restarted drive (``services.common.lifetime.is_restart``) starts disabled whatever
+``drive.auto_enable`` says, and takes over an e-stop the controllers still hold: nothing moves after a restart
+without an explicit enable, and an e-stop ends only with an explicit release.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import sys
 import time
 
 from proto.messages import Empty, Imu, ModuleState, Odometry, Pose2D, Reply, Twist2D, WheelStates
+from services.common.lifetime import is_restart
 from services.common.service import ServiceContext
 from services.drive.canlink import RoboteqLink
 from services.drive.config import DriveConfig
@@ -30,8 +33,10 @@ POSE_COVARIANCE = [1e-3, 0.0, 0.0, 0.0, 1e-3, 0.0, 0.0, 0.0, 2e-3]
 TWIST_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4]
 
 
-def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> DriveLoop:  # noqa: ANN001
-    """The drive's control loop from the robot spec and the [drive] table (raises ValueError on bad config)."""
+def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,  # noqa: ANN001
+               enabled: bool | None = None) -> DriveLoop:
+    """The drive's control loop from the robot spec and the [drive] table (raises ValueError on bad config);
+    ``enabled`` (default ``drive.auto_enable``) is its enable state at start."""
     if len(cfg.node_ids) != len(ctx_robot.modules):
         raise ValueError(f"drive.node_ids has {len(cfg.node_ids)} entries but [robot] has "
                          f"{len(ctx_robot.modules)} modules")
@@ -49,7 +54,7 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker) -> D
                             rpdo_refresh_s=cfg.rpdo_refresh_s)
     link_settings = cfg.link_settings()
     return DriveLoop(controller, odometry, lambda: RoboteqLink(link_settings, ticker.now), ticker, settings,
-                     enabled=cfg.auto_enable)
+                     enabled=cfg.auto_enable if enabled is None else enabled)
 
 
 def wheel_states(snap: Snapshot) -> WheelStates:
@@ -88,7 +93,11 @@ async def run(ctx: ServiceContext) -> None:
     if not sim:
         # the loop thread must get the GIL back quickly after its sleep: shorten the interpreter's switch interval
         sys.setswitchinterval(min(sys.getswitchinterval(), max(1e-4, 0.25 / cfg.rate_hz)))
-    loop = build_loop(ctx.robot, cfg, ticker)
+    restarted = is_restart("drive")
+    loop = build_loop(ctx.robot, cfg, ticker, enabled=cfg.auto_enable and not restarted)
+    if restarted:
+        log.warning("restarted: the drive stays disabled until drive/enable (an e-stop the controllers hold stays "
+                    "until drive/release)")
     odom_pub = node.publisher("odom")
     wheels_pub = node.publisher("wheels")
 
@@ -126,7 +135,11 @@ async def run(ctx: ServiceContext) -> None:
 
     if sim:
         node.subscribe("clock", lambda c: ticker.advance(c.stamp), on_zenoh_thread=True)
-    node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
+    if cfg.command_source == "safety/cmd_vel":
+        node.subscribe("safety/cmd_vel", on_cmd, on_zenoh_thread=True)
+    else:
+        log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
+        node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
 
     async def enable(_: Empty) -> Reply:
         if loop.estopped:
@@ -161,8 +174,7 @@ async def run(ctx: ServiceContext) -> None:
         failures = await asyncio.to_thread(link.release)
         if failures:
             return Reply(ok=False, message="!MG failed on: " + "; ".join(failures))
-        loop.controller.reset()
-        loop.estopped = False
+        loop.released()
         return Reply(ok=True, message="e-stop released (!MG)")
 
     node.queryable("drive/enable", enable)
@@ -184,6 +196,13 @@ async def run(ctx: ServiceContext) -> None:
         imu_reader.start()
 
     loop.start()
+
+    def link_known() -> str | None:  # readiness: the CAN link is up, or its first opening failed and says why
+        if loop.link_ok:
+            return "CAN link up"
+        return f"CAN link down: {loop.link_fault}" if loop.link_attempts else None
+
+    node.spawn(node.ready_when(link_known, ctx.stop))
     log.info("control loop at %.0f Hz on the %s clock, CAN %s %s", cfg.rate_hz, "sim" if sim else "wall",
              cfg.can_interface, cfg.can_channel)
     try:

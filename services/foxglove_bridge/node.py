@@ -134,6 +134,7 @@ async def run(ctx: ServiceContext) -> None:
     node.subscribe("nav/path", on_poses(path_ch))
     node.subscribe("nav/local_plan", on_poses(local_ch))
     node.subscribe("particles", on_poses(particles_ch))
+    node.ready(f"Foxglove WebSocket on port {server.port}")
     try:
         await ctx.stop.wait()
     finally:

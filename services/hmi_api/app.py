@@ -1,11 +1,18 @@
 """The HTTP + WebSocket API (Litestar, msgspec bodies) and the static web HMI.
 
-Every route under ``/api`` except ``POST /api/login`` needs ``Authorization: Bearer <token>`` (the WebSocket and
-file downloads may pass ``?token=`` instead, as browsers cannot set headers there). Status codes: 401 without a
-valid token, 422 for a body that does not validate (wrong type, NaN/inf, out of range, missing field; the body
-names the field), 404 for an unknown pose, 409 when the robot refuses (its reason in ``detail``), 503 when a robot
-service does not answer. JSON never contains NaN: non-finite numbers are sent as null.
-The OpenAPI document is at ``/api/schema/openapi.json``.
+Every route under ``/api`` except ``POST /api/login`` needs ``Authorization: Bearer <token>``; only the WebSocket
+and the GET downloads (``map.png``, ``velocities.csv``, ``poses/export``) may pass ``?token=`` instead, as browsers
+cannot set headers there. Status codes: 401 without a valid token, 400 for a body that is not UTF-8, 415 for a body
+that is not ``application/json``, 422 for a body or query parameter that does not validate (wrong type, NaN/inf,
+out of range, missing field; the body names the field), 404 for an unknown pose, 409 when the robot refuses (its
+reason in ``detail``) or the pose list is full, 429 while a client is locked out after wrong passwords (with
+``Retry-After``), 503 when a robot service does not answer. JSON never contains NaN: non-finite numbers are sent as
+null. A WebSocket is closed (code 1008) once its token is revoked (logout) or expires.
+
+Every response carries a Content-Security-Policy (same origin only), ``X-Frame-Options: DENY``,
+``X-Content-Type-Options: nosniff`` and ``Referrer-Policy: no-referrer``; a request whose ``Host`` is not in
+``hmi_api.allowed_hosts`` gets 400 (DNS rebinding). The OpenAPI document is at ``/api/schema/openapi.json``, behind
+login; no documentation page (those load scripts from a CDN) is served.
 """
 
 from __future__ import annotations
@@ -31,13 +38,14 @@ from litestar.exceptions import (
 )
 from litestar.handlers.base import BaseRouteHandler
 from litestar.openapi import OpenAPIConfig
+from litestar.openapi.plugins import JsonRenderPlugin
 from litestar.openapi.spec import Components, SecurityScheme
 from litestar.static_files import create_static_files_router
 from litestar.status_codes import HTTP_200_OK
 
 from services.hmi_api import blackbox
-from services.hmi_api.backend import Backend, RobotRejected, RobotUnavailable
-from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseNotFound, PoseRecord
+from services.hmi_api.backend import Backend, LoginThrottled, RobotRejected, RobotUnavailable
+from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseListFull, PoseNotFound, PoseRecord
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("zagv.hmi_api")
@@ -49,8 +57,20 @@ Angle = Annotated[float, msgspec.Meta(ge=-1e3, le=1e3, description="rad, wrapped
 Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX)]
 
 
-MapName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$",
+# (?!\n) before $: a Python `$` also matches before a trailing newline ("m1\n" would pass)
+MAP_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}(?!\n)$"
+MapName = Annotated[str, msgspec.Meta(pattern=MAP_NAME_PATTERN,
                                       description="a map name: letters, digits, '_', '-', '.'; no path")]
+#: security headers of every response: nothing from another origin, no framing, no MIME sniffing, no referrer
+SECURITY_HEADERS = {
+    "content-security-policy": "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
+                               "object-src 'none'; base-uri 'none'; frame-ancestors 'none'; form-action 'self'",
+    "x-frame-options": "DENY",
+    "x-content-type-options": "nosniff",
+    "referrer-policy": "no-referrer",
+}
+#: the query parameter a route may take the token from (``opt`` key of its handler)
+TOKEN_IN_QUERY = "token_in_query"
 
 
 class MapSaveIn(msgspec.Struct, forbid_unknown_fields=True):
@@ -60,9 +80,11 @@ class MapSaveIn(msgspec.Struct, forbid_unknown_fields=True):
 
 
 class MapStopIn(msgspec.Struct, forbid_unknown_fields=True):
-    """Stop mapping and navigate on ``map`` (a saved map's name or YAML path; empty: the map saved last)."""
+    """Stop mapping and navigate on ``map`` (the name of a map in the robot's maps folder, never a path; empty: the
+    map saved last)."""
 
-    map: Annotated[str, msgspec.Meta(max_length=4096)] = ""
+    map: Annotated[str, msgspec.Meta(pattern=r"^(?:[A-Za-z0-9_][A-Za-z0-9_.-]{0,63})?(?!\n)$",
+                                     description="a saved map's name, or empty for the map saved last")] = ""
 
 
 class LoginRequest(msgspec.Struct, forbid_unknown_fields=True):
@@ -150,31 +172,92 @@ class GoalAccepted(msgspec.Struct):
 # ---------------------------------------------------------------------------------------------- auth
 
 
-def bearer_token(connection: ASGIConnection) -> str | None:
+class UndecodableBody(ClientException):
+    """A body that is not UTF-8: 400 (422 is for JSON that does not validate)."""
+
+    status_code = 400
+
+
+def bearer_token(connection: ASGIConnection, *, query_allowed: bool = False) -> str | None:
+    """The token of ``Authorization: Bearer``, or of ``?token=`` where ``query_allowed`` (WebSocket, downloads)."""
     header = connection.headers.get("authorization", "")
     if header.lower().startswith("bearer "):
         return header[7:].strip()
-    return connection.query_params.get("token")
+    return connection.query_params.get("token") if query_allowed else None
 
 
-def require_token(connection: ASGIConnection, _: BaseRouteHandler) -> None:
+def require_token(connection: ASGIConnection, handler: BaseRouteHandler) -> None:
     backend: Backend = connection.app.state.backend
-    if not backend.tokens.valid(bearer_token(connection)):
+    if not backend.tokens.valid(bearer_token(connection, query_allowed=bool(handler.opt.get(TOKEN_IN_QUERY)))):
         raise NotAuthorizedException("login first: POST /api/login, then send Authorization: Bearer <token>")
 
 
 async def strict_body(request: Request) -> None:
     """Decode the JSON body strictly against the handler's ``data`` type before Litestar's own (lax) conversion,
-    so that ``"0.1"`` for a number or ``true`` for a float is a 422, not silently converted."""
+    so that ``"0.1"`` for a number or ``true`` for a float is a 422, not silently converted. A body must be
+    ``application/json`` (415 otherwise: no form posts) and UTF-8 (400 otherwise)."""
     data_field = request.route_handler.parsed_data_field
     if data_field is None:
         return None
+    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if media_type != "application/json":
+        raise HTTPException(status_code=415, detail=f"the body must be application/json, not {media_type[:60]!r}")
     body = await request.body()
+    try:
+        body.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UndecodableBody(f"the body is not UTF-8 (byte {exc.start})") from None
     try:
         msgspec.json.decode(body, type=data_field.annotation, strict=True)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
         raise ValidationException(f"invalid request body: {exc}") from None
     return None
+
+
+def host_name(host_header: str) -> str:
+    """The name part of a Host header: ``127.0.0.1:8080`` -> ``127.0.0.1``, ``[::1]:8080`` -> ``[::1]``."""
+    host = host_header.strip().lower()
+    if host.startswith("["):
+        return host[:host.index("]") + 1] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def security_layer(allowed_hosts: list[str]):  # noqa: ANN201 - an ASGI middleware factory
+    """ASGI middleware: refuse a Host outside ``allowed_hosts`` (400, DNS rebinding; WebSockets too) and add
+    ``SECURITY_HEADERS`` to every HTTP response, error responses and static files included."""
+    allowed = {h.lower() for h in allowed_hosts}
+    extra = [(k.encode(), v.encode()) for k, v in SECURITY_HEADERS.items()]
+    refusal = msgspec.json.encode({"status_code": 400, "detail": "Host header not allowed (hmi_api.allowed_hosts)"})
+
+    def factory(app):  # noqa: ANN001, ANN202
+        async def middleware(scope, receive, send) -> None:  # noqa: ANN001
+            if scope["type"] not in ("http", "websocket"):
+                await app(scope, receive, send)
+                return
+            host = next((v.decode("latin-1") for k, v in scope.get("headers", []) if k == b"host"), "")
+            if host_name(host) not in allowed:
+                if scope["type"] == "websocket":
+                    await send({"type": "websocket.close", "code": 1008})
+                    return
+                await send({"type": "http.response.start", "status": 400,
+                            "headers": [(b"content-type", b"application/json"), *extra]})
+                await send({"type": "http.response.body", "body": refusal})
+                return
+            if scope["type"] != "http":
+                await app(scope, receive, send)
+                return
+
+            async def send_with_headers(message) -> None:  # noqa: ANN001
+                if message["type"] == "http.response.start":
+                    names = {k.lower() for k, _ in message.get("headers", [])}
+                    message["headers"] = [*message.get("headers", []), *(h for h in extra if h[0] not in names)]
+                await send(message)
+
+            await app(scope, receive, send_with_headers)
+
+        return middleware
+
+    return factory
 
 
 def _backend(request: Request | WebSocket) -> Backend:
@@ -187,7 +270,8 @@ def _backend(request: Request | WebSocket) -> Backend:
 @post("/login", status_code=HTTP_200_OK, summary="Log in with the HMI password; returns a bearer token")
 async def login(request: Request, data: LoginRequest) -> LoginReply:
     b = _backend(request)
-    token = await b.login(data.password)
+    client = request.client.host if request.client else "unknown"
+    token = await b.login(data.password, client)
     if token is None:
         await asyncio.sleep(0.5)  # slows guessing a little more
         raise NotAuthorizedException("wrong password")
@@ -299,7 +383,8 @@ async def map_json(request: Request) -> dict:
     return meta
 
 
-@get("/map.png", media_type="image/png", summary="The map image (north up; pixel (0,0) is the top-left)")
+@get("/map.png", media_type="image/png", opt={TOKEN_IN_QUERY: True},
+     summary="The map image (north up; pixel (0,0) is the top-left)")
 async def map_png(request: Request) -> Response[bytes]:
     png = _backend(request).map_png()
     if png is None:
@@ -309,11 +394,15 @@ async def map_png(request: Request) -> Response[bytes]:
 
 @get("/velocities", summary="Recorded commanded and measured velocities (last window_s seconds)")
 async def velocities(request: Request, window_s: Annotated[float, msgspec.Meta(gt=0, le=1e6)] = 60.0) -> dict:
+    if not (math.isfinite(window_s) and 0 < window_s <= 1e6):  # the declared bounds let NaN through
+        raise ValidationException("window_s must be a number of seconds in (0, 1e6]",
+                                  extra=[{"key": "window_s", "source": "query"}])
     b = _backend(request)
     return {"columns": list(b.recorder.COLUMNS), "rows": b.recorder.window(window_s)}
 
 
-@get("/velocities.csv", media_type=MediaType.TEXT, summary="All recorded velocities as CSV")
+@get("/velocities.csv", media_type=MediaType.TEXT, opt={TOKEN_IN_QUERY: True},
+     summary="All recorded velocities as CSV")
 async def velocities_csv(request: Request) -> Response[str]:
     text = _backend(request).recorder.csv()
     return Response(text, media_type="text/csv",
@@ -347,7 +436,7 @@ async def poses_add(request: Request, data: PoseCreate) -> PoseRecord:
     return await b.db_call(b.db.add, data.name, x, y, theta)
 
 
-@get("/poses/export", summary="The pose list as an import document")
+@get("/poses/export", opt={TOKEN_IN_QUERY: True}, summary="The pose list as an import document")
 async def poses_export(request: Request) -> dict:
     b = _backend(request)
     return await b.db_call(b.db.export)
@@ -395,13 +484,15 @@ async def poses_send(request: Request, pose_id: int) -> GoalAccepted:
     return GoalAccepted(accepted=True, goal_id=r.goal_id)
 
 
-@websocket("/ws")
+@websocket("/ws", opt={TOKEN_IN_QUERY: True})
 async def ws(socket: WebSocket) -> None:
-    """Streams JSON frames at ``ws_rate_hz``: {type: "tick", status, scan, vel, paths?, particles?}.
+    """Streams JSON frames at ``ws_rate_hz``: {type: "tick", status, scan, vel, paths?, particles?}; closes with
+    code 1008 once its token is revoked (logout) or expires.
 
     Pacing uses wall time (asyncio.sleep): the frames feed a display that a person watches in real time.
     """
     b: Backend = socket.app.state.backend
+    token = bearer_token(socket, query_allowed=True)
     await socket.accept()
     period = 1.0 / b.config.ws_rate_hz
     versions = (-1, -1)
@@ -410,6 +501,9 @@ async def ws(socket: WebSocket) -> None:
     next_t = loop.time()
     try:
         while True:
+            if not b.tokens.valid(token):
+                await socket.close(code=1008, reason="logged out or token expired")
+                return
             payload, versions = b.frame(full=tick % 20 == 0, last_versions=versions)
             await socket.send_data(payload.decode(), mode="text")
             tick += 1
@@ -468,8 +562,16 @@ def _on_storage(request: Request, exc: sqlite3.OperationalError) -> Response[dic
     return _error(503, f"pose database unavailable: {exc}")
 
 
-def _on_rejected(_: Request, exc: RobotRejected) -> Response[dict]:
+def _on_rejected(_: Request, exc: RobotRejected | PoseListFull) -> Response[dict]:
     return _error(409, str(exc))
+
+
+def _on_throttled(_: Request, exc: LoginThrottled) -> Response[dict]:
+    return _error(429, str(exc), headers={"retry-after": str(max(1, math.ceil(exc.retry_after_s)))})
+
+
+def _on_undecodable(_: Request, exc: UndecodableBody) -> Response[dict]:
+    return _error(400, str(exc.detail))
 
 
 def _on_unavailable(_: Request, exc: RobotUnavailable) -> Response[dict]:
@@ -479,6 +581,12 @@ def _on_unavailable(_: Request, exc: RobotUnavailable) -> Response[dict]:
 @get("/", include_in_schema=False)
 async def index() -> Response[bytes]:
     return Response((STATIC_DIR / "index.html").read_bytes(), media_type=MediaType.HTML)
+
+
+def create_asgi_app(backend: Backend):  # noqa: ANN201 - an ASGI application
+    """The Litestar app inside the security layer (Host allow-list, security headers), which also covers requests
+    that match no route."""
+    return security_layer(backend.config.host_allow_list())(create_app(backend))
 
 
 def create_app(backend: Backend) -> Litestar:
@@ -496,6 +604,7 @@ def create_app(backend: Backend) -> Litestar:
         before_request=strict_body,
     )
     public = Router(path="/api", route_handlers=[login], before_request=strict_body)
+    docs = Router(path="/api/schema", guards=[require_token], route_handlers=[], include_in_schema=False)
     app = Litestar(
         route_handlers=[public, api, index,
                         create_static_files_router(path="/static", directories=[STATIC_DIR],
@@ -505,14 +614,18 @@ def create_app(backend: Backend) -> Litestar:
             ClientException: _on_client_error,
             HTTPException: _on_http,
             Exception: _on_internal,
+            UndecodableBody: _on_undecodable,
             PoseNotFound: _on_not_found,
+            PoseListFull: _on_rejected,
             PoseDbError: _on_db_error,
+            LoginThrottled: _on_throttled,
             sqlite3.OperationalError: _on_storage,
             RobotRejected: _on_rejected,
             RobotUnavailable: _on_unavailable,
         },
         openapi_config=OpenAPIConfig(
-            title="zagv HMI API", version="1.0.0", path="/api/schema",
+            title="zagv HMI API", version="1.0.0", path="/api/schema", openapi_router=docs,
+            render_plugins=[JsonRenderPlugin()],
             components=Components(security_schemes={
                 "BearerToken": SecurityScheme(type="http", scheme="bearer",
                                               description="token from POST /api/login")}),

@@ -11,6 +11,7 @@ import base64
 import getpass
 import hashlib
 import hmac
+import math
 import os
 import secrets
 import time
@@ -118,6 +119,65 @@ class TokenStore:
         now = time.monotonic()
         for t in [t for t, e in self._tokens.items() if e < now]:
             del self._tokens[t]
+
+
+@dataclass
+class _Failures:
+    count: int = 0
+    locked_until: float = 0.0
+    last_at: float = 0.0
+
+
+@dataclass
+class LoginThrottle:
+    """Per-client login throttling (core: times are arguments).
+
+    After ``free_attempts`` wrong passwords in a row a client (its address) is locked out for ``lockout_initial_s``,
+    doubling with each further wrong one up to ``lockout_max_s``. A lock-out is checked before the password is
+    hashed, so a locked client costs no scrypt time; one attempt per client is hashed at a time. A client unheard of for
+    ``forget_after_s`` starts afresh; at most ``max_clients`` are remembered (the oldest forgotten first).
+    A correct password clears the client's record.
+    """
+
+    free_attempts: int = 5
+    lockout_initial_s: float = 1.0
+    lockout_max_s: float = 300.0
+    forget_after_s: float = 900.0
+    max_clients: int = 10000
+    _clients: dict[str, _Failures] = field(default_factory=dict)
+    _busy: set[str] = field(default_factory=set)
+
+    def wait_s(self, client: str, now: float) -> float:
+        """Seconds until ``client`` may try again (0: now), or ``inf`` while one of its attempts is being checked."""
+        if client in self._busy:
+            return math.inf
+        record = self._clients.get(client)
+        if record is None:
+            return 0.0
+        if now - record.last_at > self.forget_after_s:
+            del self._clients[client]
+            return 0.0
+        return max(0.0, record.locked_until - now)
+
+    def begin(self, client: str) -> None:
+        self._busy.add(client)
+
+    def end(self, client: str, ok: bool, now: float) -> int:
+        """Record the outcome of ``client``'s attempt; returns its count of consecutive failures."""
+        self._busy.discard(client)
+        if ok:
+            self._clients.pop(client, None)
+            return 0
+        record = self._clients.pop(client, None) or _Failures()
+        self._clients[client] = record  # re-inserted: the dict keeps clients in order of last attempt
+        record.count += 1
+        record.last_at = now
+        over = record.count - self.free_attempts
+        if over >= 0:
+            record.locked_until = now + min(self.lockout_max_s, self.lockout_initial_s * 2.0 ** over)
+        while len(self._clients) > self.max_clients:
+            del self._clients[next(iter(self._clients))]
+        return record.count
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -36,7 +36,8 @@ from proto.messages import (
     WaypointsRequest,
 )
 from services.common.clock import Rate
-from services.common.node import Node, QueryError
+from services.common.node import Node
+from services.common.query import QueryError
 from services.common.robot import RobotSpec
 from services.hmi_api import auth
 from services.hmi_api.config import HmiApiConfig
@@ -58,6 +59,14 @@ class RobotRejected(RuntimeError):
     """A robot service answered with a refusal; the message is its reason."""
 
 
+class LoginThrottled(RuntimeError):
+    """Too many wrong passwords from one client: it may try again after ``retry_after_s``."""
+
+    def __init__(self, retry_after_s: float, message: str) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
 class Backend:
     """State and actions behind the HTTP API (one per process)."""
 
@@ -68,11 +77,15 @@ class Backend:
         self.view = RobotView()
         self.jog = JogGate(timeout_s=config.jog_timeout_s)
         self.tokens = auth.TokenStore(ttl_s=config.token_ttl_s)
+        self.throttle = auth.LoginThrottle(free_attempts=config.login_free_attempts,
+                                           lockout_initial_s=config.login_lockout_initial_s,
+                                           lockout_max_s=config.login_lockout_max_s)
+        self._hashing = asyncio.Semaphore(1)  # one scrypt at a time: guessing cannot take every CPU
         self.recorder = VelocityRecorder(config.velocity_history_s, config.velocity_record_hz)
         self.state_dir = Path(config.state_dir).expanduser()
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self._db_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="posedb")
-        self.db = PoseDb(self.state_dir / DB_FILE)
+        self.db = PoseDb(self.state_dir / DB_FILE, max_poses=config.max_poses)
         self.password_hash = self._load_password()
         self._cmd_at_s = -math.inf
         self._map_png: tuple[int, bytes] | None = None
@@ -109,13 +122,15 @@ class Backend:
                     setattr(v, version, getattr(v, version) + 1)
             return set_it
 
+        # latched topics (pose, map_odom, nav/status, paths, map) arrive whatever the start order (Node.subscribe)
         n.subscribe("odom", setter("odom"))
-        n.subscribe("pose", setter("pose"))
-        n.subscribe("tf/map_odom", setter("map_odom"))
+        n.subscribe("pose", setter("pose"), latched=True)
+        n.subscribe("tf/map_odom", setter("map_odom"), latched=True)
         n.subscribe("wheels", setter("wheels"))
-        n.subscribe("nav/status", setter("nav"))
+        n.subscribe("nav/status", setter("nav"), latched=True)
+        n.subscribe("safety/state", setter("safety"), latched=True)
         n.subscribe("scan", setter("scan"))
-        n.subscribe("nav/path", setter("path", "path_version"))
+        n.subscribe("nav/path", setter("path", "path_version"), latched=True)
         n.subscribe("nav/local_plan", setter("local_plan", "path_version"))
         n.subscribe("particles", setter("particles", "particles_version"))
         n.subscribe("map", self._on_map, latched=True)
@@ -168,10 +183,27 @@ class Backend:
 
     # ------------------------------------------------------------------ login
 
-    async def login(self, password: str) -> str | None:
-        loop = asyncio.get_running_loop()
-        ok = await loop.run_in_executor(None, auth.verify_password, password, self.password_hash)
-        return self.tokens.issue() if ok else None
+    async def login(self, password: str, client: str) -> str | None:
+        """A token for the right password, None for a wrong one (logged with the client's address); raises
+        LoginThrottled while ``client`` is locked out or has an attempt being checked."""
+        wait_s = self.throttle.wait_s(client, time.monotonic())
+        if wait_s > 0:
+            if math.isinf(wait_s):
+                raise LoginThrottled(1.0, "a login from this client is being checked; try again in a moment")
+            raise LoginThrottled(wait_s, f"too many wrong passwords from this client; try again in {wait_s:.0f} s")
+        self.throttle.begin(client)
+        ok = False
+        try:
+            async with self._hashing:
+                loop = asyncio.get_running_loop()
+                ok = await loop.run_in_executor(None, auth.verify_password, password, self.password_hash)
+        finally:
+            failures = self.throttle.end(client, ok, time.monotonic())
+        if not ok:
+            log.warning("login failed from %s (%d wrong password(s) in a row)", client, failures)
+            return None
+        log.info("login from %s", client)
+        return self.tokens.issue()
 
     # ------------------------------------------------------------------ database
 

@@ -10,7 +10,8 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     ``password_hash`` is a ``scrypt$...`` string from ``python -m services.hmi_api.auth hash``; when empty, a
     first-run password is generated, its hash stored in ``state_dir`` and the password printed once.
-    ``home_*`` is the start pose that ``POST /api/home`` sends as a goal (the paper's "return to zero").
+    ``allowed_hosts``, ``tls_*``, ``login_*`` and ``max_poses`` are the limits deploy/README.md ("Threat model")
+    describes. ``home_*`` is the start pose that ``POST /api/home`` sends as a goal (the paper's "return to zero").
     """
 
     host: str = "127.0.0.1"
@@ -29,6 +30,17 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
     scan_max_points: int = 720
     particles_max: int = 1000
     query_timeout_s: float = 3.0
+    #: wrong passwords a client may send before it is locked out (1 s, doubling up to login_lockout_max_s)
+    login_free_attempts: int = 5
+    login_lockout_initial_s: float = 1.0
+    login_lockout_max_s: float = 300.0
+    #: the most poses the pose database holds
+    max_poses: int = 1000
+    #: Host header values accepted (DNS rebinding): empty = loopback names plus ``host`` when it is not a wildcard
+    allowed_hosts: list[str] = msgspec.field(default_factory=list)
+    #: HTTPS: PEM certificate and private key (e.g. from deploy/zenoh/make-certs.sh); both empty = plain HTTP
+    tls_certificate: str = ""
+    tls_private_key: str = ""
 
     def __post_init__(self) -> None:
         if self.password_hash:
@@ -37,7 +49,20 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
             check_hash_format(self.password_hash)
         if not 0 < self.port < 65536:
             raise ValueError(f"hmi_api.port must be in 1..65535, got {self.port}")
+        if bool(self.tls_certificate) != bool(self.tls_private_key):
+            raise ValueError("hmi_api.tls_certificate and hmi_api.tls_private_key go together: set both or neither")
+        if self.login_free_attempts < 1 or self.max_poses < 1:
+            raise ValueError("hmi_api.login_free_attempts and hmi_api.max_poses must be >= 1")
         for name in ("jog_timeout_s", "jog_rate_hz", "ws_rate_hz", "velocity_record_hz", "token_ttl_s",
-                     "velocity_history_s", "query_timeout_s"):
+                     "velocity_history_s", "query_timeout_s", "login_lockout_initial_s", "login_lockout_max_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"hmi_api.{name} must be > 0, got {getattr(self, name)}")
+
+    def host_allow_list(self) -> list[str]:
+        """The Host header names accepted: ``allowed_hosts``, else loopback plus ``host`` unless it is a wildcard."""
+        if self.allowed_hosts:
+            return list(self.allowed_hosts)
+        names = ["127.0.0.1", "localhost", "::1", "[::1]"]
+        if self.host not in ("0.0.0.0", "::", "") and self.host not in names:
+            names.append(self.host)
+        return names

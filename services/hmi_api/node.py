@@ -10,7 +10,7 @@ import socket
 import uvicorn
 
 from services.common.service import ServiceContext
-from services.hmi_api.app import create_app
+from services.hmi_api.app import create_asgi_app
 from services.hmi_api.backend import Backend
 from services.hmi_api.config import HmiApiConfig
 
@@ -44,12 +44,17 @@ async def run(ctx: ServiceContext) -> None:
     config: HmiApiConfig = ctx.config["hmi_api"]
     sock = listen_socket(config.host, config.port)  # first: connections queue in the backlog from now on
     backend = Backend(ctx.node, ctx.robot, config)
-    app = create_app(backend)
+    app = create_asgi_app(backend)
+    tls = {"ssl_certfile": config.tls_certificate, "ssl_keyfile": config.tls_private_key} \
+        if config.tls_certificate else {}
     server = _LoopServer(uvicorn.Config(app, lifespan="off", log_config=None, log_level="warning", access_log=False,
-                                        ws="websockets-sansio", ws_ping_interval=None))
+                                        ws="websockets-sansio", ws_ping_interval=None, **tls))
     tasks = [ctx.node.spawn(backend.jog_loop(ctx.stop)), ctx.node.spawn(backend.record_loop(ctx.stop)),
              ctx.node.spawn(server.serve(sockets=[sock]))]
-    log.info("HMI at http://%s:%d/ (API /api, OpenAPI /api/schema/openapi.json)", config.host, config.port)
+    node = ctx.node
+    node.spawn(node.ready_when(lambda: "HTTP API serving" if server.started else None, ctx.stop))
+    log.info("HMI at %s://%s:%d/ (API /api, OpenAPI /api/schema/openapi.json)", "https" if tls else "http",
+             config.host, config.port)
     try:
         await ctx.stop.wait()
     finally:

@@ -68,6 +68,10 @@ class PoseNotFound(PoseDbError):
     pass
 
 
+class PoseListFull(PoseDbError):
+    """The pose list holds ``max_poses`` already."""
+
+
 def normalize_angle(theta: float) -> float:
     """theta wrapped to (-pi, pi]."""
     wrapped = math.remainder(theta, 2.0 * math.pi)
@@ -81,6 +85,8 @@ def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float,
         raise PoseDbError("name must not be empty")
     if len(name) > NAME_MAX:
         raise PoseDbError(f"name is longer than {NAME_MAX} characters")
+    if any(ch < " " or ch == "\x7f" for ch in name):
+        raise PoseDbError("name must not contain control characters (newline, tab, ...)")
     for field_name, v in (("x", x), ("y", y), ("theta", theta)):
         if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
             raise PoseDbError(f"{field_name} must be a finite number, got {v!r}")
@@ -100,8 +106,9 @@ def check_id(pose_id: int) -> int:
 class PoseDb:
     """One SQLite connection (use it from one thread at a time)."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, max_poses: int = 1000) -> None:
         self.path = Path(path)
+        self.max_poses = max_poses
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False, timeout=10.0)
         self._db.execute("PRAGMA journal_mode=WAL")
@@ -158,10 +165,17 @@ class PoseDb:
 
     # ------------------------------------------------------------------ writes (each one transaction)
 
+    def _check_room(self, db: sqlite3.Connection, adding: int) -> None:
+        held = db.execute("SELECT COUNT(*) FROM poses").fetchone()[0]
+        if held + adding > self.max_poses:
+            raise PoseListFull(f"the pose list holds {held} poses; {adding} more would pass the limit of "
+                               f"{self.max_poses}")
+
     def add(self, name: str, x: float, y: float, theta: float) -> PoseRecord:
         name, x, y, theta = check_pose(name, x, y, theta)
         now = time.time()
         with self._tx() as db:
+            self._check_room(db, 1)
             position = db.execute("SELECT COALESCE(MAX(position), 0) + 1 FROM poses").fetchone()[0]
             cur = db.execute(
                 "INSERT INTO poses (name, x_m, y_m, theta_rad, position, created_at, updated_at) "
@@ -227,6 +241,7 @@ class PoseDb:
         with self._tx() as db:
             if replace:
                 db.execute("DELETE FROM poses")
+            self._check_room(db, len(checked))
             start = db.execute("SELECT COALESCE(MAX(position), 0) + 1 FROM poses").fetchone()[0]
             db.executemany(
                 "INSERT INTO poses (name, x_m, y_m, theta_rad, position, created_at, updated_at) "

@@ -24,6 +24,7 @@ from proto.messages import (
     Path,
     PoseArray,
     PoseWithCovariance,
+    SafetyState,
     Transform2D,
     Twist2D,
     WheelStates,
@@ -76,6 +77,7 @@ class RobotView:
     particles: PoseArray | None = None
     grid: OccupancyGrid | None = None
     cmd: Twist2D | None = None
+    safety: SafetyState | None = None
     alive: set[str] = field(default_factory=set)
     #: when each topic's last message arrived (wall monotonic s: link health, not robot time)
     received: dict[str, float] = field(default_factory=dict)
@@ -160,7 +162,9 @@ class RobotView:
             cov = self.pose.covariance if self.pose is not None and frame == "map" else []
             out["pose"] = {"x": finite(x), "y": finite(y), "theta": finite(th), "frame": frame,
                            "std_xy_m": std(cov[0] + cov[4]) if len(cov) == 9 else None,
-                           "std_theta_rad": std(cov[8]) if len(cov) == 9 else None}
+                           "std_theta_rad": std(cov[8]) if len(cov) == 9 else None,
+                           # the filter's verdict: "localizing" until it converged, then "tracking" (or "lost")
+                           "localization": self.pose.state if self.pose is not None else None}
         else:
             out["pose"] = None
         if self.wheels is not None:
@@ -184,6 +188,19 @@ class RobotView:
                           "waypoint_count": n.waypoint_count, "sequence_paused": n.sequence_paused}
         else:
             out["nav"] = None
+        if self.safety is not None:
+            sf = self.safety
+            out["safety"] = {"action": sf.action, "scale": finite(sf.scale, 3), "reason": sf.reason,
+                             "nearest_m": finite(sf.nearest_m, 3) if sf.nearest_m >= 0 else None,
+                             "interventions": sf.interventions}
+        else:
+            out["safety"] = None
+        if self.pose is not None:
+            pw = self.pose
+            out["localization"] = {"state": pw.state, "match_score": finite(pw.match_score, 3),
+                                   "spread_m": finite(pw.spread_m, 3)}
+        else:
+            out["localization"] = None
         return out
 
 

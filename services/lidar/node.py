@@ -103,6 +103,7 @@ class LidarNode:
             finally:
                 self._close_link()
                 self._update_stats()
+                self.node.ready(f"LMS111 link down: {self.last_error}")  # the first attempt's outcome is known
             if stop.is_set():
                 break
             if self.scans > started_scans:
@@ -201,6 +202,8 @@ class LidarNode:
     def _publish(self, msg: LaserScan) -> None:
         self.pub.put(msg)
         self.scans += 1
+        if self.scans == 1:
+            self.node.ready("LMS111 streaming")
         if self.scans % 25 == 1:
             self._update_stats()
 

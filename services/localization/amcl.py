@@ -31,7 +31,7 @@ import msgspec
 import numpy as np
 from scipy import ndimage
 
-from services.localization.map_io import FREE, OccupancyMap
+from services.localization.map_io import FREE, UNKNOWN, OccupancyMap
 
 #: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg
 BIN_XY_M = 0.5
@@ -65,6 +65,10 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     z_rand: float = 0.1
     sigma_hit: float = 0.1
     laser_likelihood_max_dist: float = 2.0
+    #: beams ending in unknown cells score as if they ended this far (m) from an obstacle; < 0: as Nav2 (only the
+    #: distance to occupied cells counts, so a pose that puts unexplained beams into unknown space is punished
+    #: for every one of them)
+    unknown_distance_m: float = 0.2
     laser_min_range: float = -1.0
     laser_max_range: float = -1.0
     alpha1: float = 0.2
@@ -90,6 +94,31 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     #: hall seen rotated by 90 deg)
     global_localization_jitter_xy_m: float = 0.05
     global_localization_jitter_theta_rad: float = 0.02
+    #: the verdict (``Amcl.state``): a beam is *explained* when its endpoint, seen from the estimate, lies within
+    #: ``match_distance_m`` of an obstacle of the map; ``match_score`` is the median over the last
+    #: ``match_window`` scans of the fraction of beams explained. Tracking turns lost when that median falls below
+    #: ``lost_score`` or the particles spread beyond ``lost_spread_m``; localizing (after an initial pose, a global
+    #: localization or a recovery) turns tracking when the median reaches ``track_score`` with the spread under
+    #: ``track_spread_m``
+    match_distance_m: float = 0.15
+    match_window: int = 5
+    match_min_beams: int = 8
+    lost_score: float = 0.5
+    track_score: float = 0.8
+    lost_spread_m: float = 1.0
+    track_spread_m: float = 0.25
+    #: recovery once lost: first ``local_recovery_attempts`` sensor resets within ``local_recovery_radius_m`` of the
+    #: last pose the filter trusted (each attempt doubles the radius), each given ``recovery_attempt_s`` to converge,
+    #: then global localization, repeated every ``global_recovery_s`` while it does not converge. While not
+    #: tracking the filter updates at least every ``recovery_update_period_s``, moving or not
+    local_recovery_attempts: int = 2
+    local_recovery_radius_m: float = 2.0
+    recovery_attempt_s: float = 4.0
+    global_recovery_s: float = 20.0
+    recovery_update_period_s: float = 0.2
+    #: random-particle injection (recovery_alpha_*) only while the filter is not tracking: a tracking filter is
+    #: trusted, and injecting into it on a poorly matching stretch of a real map is what made it jump
+    inject_while_tracking: bool = False
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -107,6 +136,14 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "global_localization_cooling": 0 < self.global_localization_cooling <= 1,
             "global_localization_jitter_xy_m": self.global_localization_jitter_xy_m >= 0,
             "global_localization_jitter_theta_rad": self.global_localization_jitter_theta_rad >= 0,
+            "match_distance_m": self.match_distance_m > 0, "match_window": self.match_window >= 1,
+            "match_min_beams": self.match_min_beams >= 1,
+            "lost_score": 0 <= self.lost_score <= self.track_score, "track_score": self.track_score <= 1,
+            "lost_spread_m": self.lost_spread_m >= self.track_spread_m, "track_spread_m": self.track_spread_m > 0,
+            "local_recovery_attempts": self.local_recovery_attempts >= 0,
+            "local_recovery_radius_m": self.local_recovery_radius_m > 0,
+            "recovery_attempt_s": self.recovery_attempt_s > 0, "global_recovery_s": self.global_recovery_s > 0,
+            "recovery_update_period_s": self.recovery_update_period_s >= 0,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -185,6 +222,17 @@ class LikelihoodField:
             dist_m = np.full(surface.shape, np.inf)
         self.max_dist = params.laser_likelihood_max_dist
         self.distance_m = np.minimum(dist_m, self.max_dist)
+        #: distance (m) from each corner to the nearest obstacle surface, and whether an unknown cell touches it
+        self.obstacle_distance_m = self.distance_m
+        unknown_cells = np.pad(grid.data == UNKNOWN, 1, constant_values=False)
+        self.near_unknown = (unknown_cells[:-1, :-1] | unknown_cells[1:, :-1] | unknown_cells[:-1, 1:]
+                             | unknown_cells[1:, 1:])
+        if params.unknown_distance_m >= 0.0:
+            # a beam that ends in space the map never saw is no evidence against the pose: score it as a beam that
+            # ends unknown_distance_m from a wall (corners with an unknown cell among their four; map-edge padding
+            # excluded), never worse than its own distance
+            self.distance_m = np.where(self.near_unknown, np.minimum(self.distance_m, params.unknown_distance_m),
+                                       self.distance_m)
         self.params = params
         self._range_max: float | None = None
         self.table = np.empty((grid.height + 3, grid.width + 3), dtype=np.float32)
@@ -215,6 +263,8 @@ class Estimate:
     covariance: np.ndarray
     weight: float
     particles: int
+    #: sqrt(var x + var y) of the whole weighted particle set (m): small when the filter has one tight hypothesis
+    spread_m: float = 0.0
 
 
 class ParticleFilter:
@@ -240,6 +290,8 @@ class ParticleFilter:
         self.temperature = 1.0
         self.w_slow = 0.0
         self.w_fast = 0.0
+        #: random-particle injection allowed (the driver turns it off while the filter is tracking)
+        self.allow_injection = True
         self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
                                     for k in range(m + 1)], dtype=np.int64)
         self._counts = np.arange(1, m + 1)
@@ -307,6 +359,54 @@ class ParticleFilter:
         self._set_uniform_weights(n)
         self.w_slow = self.w_fast = 0.0
         self.temperature = self.params.global_localization_temperature
+
+    def init_around(self, center: tuple[float, float], radius_m: float) -> int:
+        """Local relocalization: ``global_localization_particles`` poses uniform over the free cells within
+        ``radius_m`` of ``center`` (any heading), annealed like a global localization; returns how many."""
+        cols, rows = self._free_cells
+        x, y = self.grid.cell_to_world(cols, rows)
+        near = np.nonzero((x - center[0]) ** 2 + (y - center[1]) ** 2 <= radius_m * radius_m)[0]
+        if near.size == 0:
+            self.init_uniform()
+            return self.n
+        n = max(self.params.max_particles, self.params.global_localization_particles)
+        pick = near[self.rng.integers(0, near.size, size=n)]
+        jitter = self.rng.random((n, 2)) - 0.5
+        px, py = self.grid.cell_to_world(cols[pick] + jitter[:, 0], rows[pick] + jitter[:, 1])
+        self.poses[:n, 0] = px
+        self.poses[:n, 1] = py
+        self.poses[:n, 2] = self.rng.uniform(-math.pi, math.pi, size=n)
+        self._set_uniform_weights(n)
+        self.w_slow = self.w_fast = 0.0
+        self.temperature = self.params.global_localization_temperature
+        return n
+
+    def explained_fraction(self, pose: tuple[float, float, float], ranges: np.ndarray, bearings: np.ndarray,
+                           mount: tuple[float, float, float]) -> float:
+        """Scan match score at ``pose``: hits / (hits + misses) over the beams, where a hit ends within
+        ``match_distance_m`` of an obstacle (the field's distance at the nearest corner) and a miss ends in known
+        space farther from any (or beyond the map). Beams that end in unknown cells are neither: the map cannot
+        say (on a real SLAM map most beams of a campus end there). NaN when fewer than ``match_min_beams`` beams
+        are hits or misses."""
+        if ranges.size == 0:
+            return math.nan
+        grid = self.grid
+        lx, ly, lth = compose(pose, mount)
+        ex = lx + ranges * np.cos(lth + bearings) - grid.origin[0]
+        ey = ly + ranges * np.sin(lth + bearings) - grid.origin[1]
+        c0, s0 = math.cos(grid.origin[2]), math.sin(grid.origin[2])
+        gx = np.floor((c0 * ex + s0 * ey) / grid.resolution + 0.5).astype(np.intp)
+        gy = np.floor((-s0 * ex + c0 * ey) / grid.resolution + 0.5).astype(np.intp)
+        dist = self.field.distance_m
+        inside = (gx >= 0) & (gx < dist.shape[1]) & (gy >= 0) & (gy < dist.shape[0])
+        hits = np.zeros(ranges.size, dtype=bool)
+        unknown = np.zeros(ranges.size, dtype=bool)
+        hits[inside] = self.field.obstacle_distance_m[gy[inside], gx[inside]] <= self.params.match_distance_m
+        unknown[inside] = self.field.near_unknown[gy[inside], gx[inside]] & ~hits[inside]
+        judged = int(ranges.size - np.count_nonzero(unknown))
+        if judged < self.params.match_min_beams:
+            return math.nan
+        return float(np.count_nonzero(hits)) / judged
 
     # ------------------------------------------------------------------ motion
 
@@ -509,7 +609,7 @@ class ParticleFilter:
         self.rng.shuffle(picks)  # KLD takes a prefix: it must be a random subset, not the lowest indices
         new = self._poses_next[:m]
         np.take(self.poses, picks, axis=0, out=new)
-        w_diff = self.injection_probability()
+        w_diff = self.injection_probability() if self.allow_injection else 0.0
         if w_diff > 0.0:
             inject = np.nonzero(self.rng.random(m) < w_diff)[0]
             if inject.size:
@@ -574,7 +674,11 @@ class ParticleFilter:
         cov[0, 1] = cov[1, 0] = float(ws @ (x * y)) / total - mx * my
         cov[2, 2] = -2.0 * math.log(max(math.hypot(mc, ms), 1e-12))
         cov[0, 0], cov[1, 1] = max(cov[0, 0], 0.0), max(cov[1, 1], 0.0)
-        return Estimate((mx, my, math.atan2(ms, mc)), cov, total, n)
+        wall = w if float(w.sum()) > 0.0 else np.full(n, 1.0 / n)
+        wsum = float(wall.sum())
+        ax, ay = float(wall @ poses[:, 0]) / wsum, float(wall @ poses[:, 1]) / wsum
+        var = float(wall @ ((poses[:, 0] - ax) ** 2 + (poses[:, 1] - ay) ** 2)) / wsum
+        return Estimate((mx, my, math.atan2(ms, mc)), cov, total, n, math.sqrt(max(var, 0.0)))
 
 
 def cluster_labels(poses: np.ndarray) -> np.ndarray:
@@ -635,11 +739,21 @@ def select_beams(ranges: np.ndarray, angle_min: float, angle_increment: float, r
 
 
 class Amcl:
-    """The filter's driver: update gates, resample interval, initial pose, global localization, no-motion update.
+    """The filter's driver: update gates, resample interval, initial pose, global localization, no-motion update,
+    and the verdict with its recovery.
 
-    ``process(odom_pose, beams, mount)`` takes the odometry pose (odom frame) at the scan's time. After a filter
-    update, ``estimate`` is the map pose and ``map_odom`` the correction with map pose = map_odom ∘ odom pose.
+    ``process(odom_pose, beams, mount, stamp)`` takes the odometry pose (odom frame) at the scan's time. After a
+    filter update, ``estimate`` is the map pose and ``map_odom`` the correction with map pose = map_odom ∘ odom pose.
+
+    Verdict (``state``, every scan, see ``AmclParams``): ``localizing`` → ``tracking`` when the scans fit and the
+    particles agree; ``tracking`` → ``lost`` when they stop fitting. Lost starts the recovery: sensor resets around
+    ``last_good`` (the last pose judged tracking, or the initial pose), then global localization; ``reason`` says
+    where it stands. A filter that is localizing for longer than ``recovery_attempt_s`` without converging (e.g. an
+    initial pose 2 m off) is declared lost the same way.
     """
+
+    #: scan period assumed when ``process`` gets no stamp (s)
+    DEFAULT_SCAN_PERIOD_S = 0.04
 
     def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None) -> None:
         self.params = params
@@ -650,6 +764,19 @@ class Amcl:
         self.updates = 0
         self.estimate: Estimate | None = None
         self.map_odom: tuple[float, float, float] | None = None
+        self.state: str = "localizing"
+        self.reason = "no pose yet"
+        self.match_score = 0.0
+        self.spread_m = math.inf
+        self.last_good: tuple[float, float, float] | None = None
+        self.lost_at: float | None = None
+        self.lost_reason = ""
+        self._scores: list[float] = []
+        self._now = 0.0
+        self._last_update_at = -math.inf
+        self._stage = -1  # -1: none; 0..local_recovery_attempts-1: local resets; local_recovery_attempts: global
+        self._stage_started_at = 0.0
+        self._updates_since_reset = 0
 
     def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None) -> None:
         """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2)."""
@@ -659,10 +786,13 @@ class Amcl:
             raise ValueError(f"initial pose {pose} is not finite")
         self.pf.init_gaussian(pose, covariance)
         self._reinitialised()
+        self.last_good = tuple(float(v) for v in pose)
+        self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
     def global_localization(self) -> None:
         self.pf.init_uniform()
         self._reinitialised()
+        self._set_state("localizing", "global localization")
 
     def request_nomotion_update(self) -> None:
         self.force_update = True
@@ -675,31 +805,103 @@ class Amcl:
         self.pf_odom_pose = None
         self.resample_count = 0
         self.estimate = None
+        self.map_odom = None
+        self._scores.clear()
+        self._stage = -1
+        self._stage_started_at = self._now
+        self._updates_since_reset = 0
+
+    def _set_state(self, state: str, reason: str) -> None:
+        self.state, self.reason = state, reason
+        self.pf.allow_injection = state != "tracking" or self.params.inject_while_tracking
 
     def process(self, odom_pose: tuple[float, float, float], beams: ScanBeams,
-                mount: tuple[float, float, float]) -> bool:
-        """One scan: motion + sensor update (+ resampling) when the gates open; returns whether it updated."""
+                mount: tuple[float, float, float], stamp: float | None = None) -> bool:
+        """One scan at ``stamp`` (s; None: DEFAULT_SCAN_PERIOD_S after the last): motion + sensor update
+        (+ resampling) when the gates open, then the verdict; returns whether the filter updated."""
+        self._now = self._now + self.DEFAULT_SCAN_PERIOD_S if stamp is None else float(stamp)
+        p = self.params
+        if self.state != "tracking" and self._now - self._last_update_at >= p.recovery_update_period_s:
+            self.force_update = True  # converge (or recover) at rest too
         if self.pf_odom_pose is None:
             self.pf_odom_pose = odom_pose
             update = True
         else:
             px, py, pth = self.pf_odom_pose
             delta = (odom_pose[0] - px, odom_pose[1] - py, float(wrap_angle(odom_pose[2] - pth)))
-            p = self.params
             update = (abs(delta[0]) > p.update_min_d or abs(delta[1]) > p.update_min_d
                       or abs(delta[2]) > p.update_min_a or self.force_update)
             if update:
                 self.pf.motion_update(odom_pose, delta)
                 self.pf_odom_pose = odom_pose
-        if not update:
-            return False
-        self.force_update = False
-        self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
-        self.resample_count += 1
-        # the weighted set carries this scan's evidence; resampling only adds noise to its mean
-        self.estimate = self.pf.estimate()
-        if self.resample_count % self.params.resample_interval == 0:
-            self.pf.resample()
-        self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
-        self.updates += 1
-        return True
+        if update:
+            self.force_update = False
+            self._last_update_at = self._now
+            self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
+            self.resample_count += 1
+            # the weighted set carries this scan's evidence; resampling only adds noise to its mean
+            self.estimate = self.pf.estimate()
+            self.spread_m = self.estimate.spread_m
+            if self.resample_count % self.params.resample_interval == 0:
+                self.pf.resample()
+            self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
+            self.updates += 1
+            self._updates_since_reset += 1
+        if self.map_odom is not None:
+            self._judge(compose(self.map_odom, odom_pose), beams, mount)
+        return update
+
+    def _judge(self, pose: tuple[float, float, float], beams: ScanBeams, mount: tuple[float, float, float]) -> None:
+        """Score the scan at the map pose, then move the verdict and the recovery on."""
+        p = self.params
+        score = self.pf.explained_fraction(pose, beams.ranges, beams.bearings, mount)
+        if math.isfinite(score):  # else the scan saw too little the map knows: the verdict waits
+            self._scores.append(score)
+            del self._scores[:-p.match_window]
+        if self._scores:
+            self.match_score = float(np.median(self._scores))
+        if len(self._scores) < p.match_window and self.state != "tracking":
+            return
+        now = self._now
+        if self.state == "tracking":
+            if self.match_score < p.lost_score or self.spread_m > p.lost_spread_m:
+                self.lost_at = now
+                self.lost_reason = f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m"
+                self._start_stage(0)
+            else:
+                self.last_good = pose
+            return
+        converged = (len(self._scores) >= p.match_window and self.match_score >= p.track_score
+                     and self.spread_m <= p.track_spread_m and self.pf.temperature <= 1.0
+                     and self._updates_since_reset >= 2)
+        if converged:
+            self._stage = -1
+            self._set_state("tracking", f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m")
+            self.last_good = pose
+            return
+        limit = p.global_recovery_s if self._stage >= p.local_recovery_attempts else p.recovery_attempt_s
+        if now - self._stage_started_at < limit:
+            return
+        if self._stage < 0:  # an initial pose that never converged: it was wrong
+            self.lost_at = now
+            self.lost_reason = f"not converged {limit:.0f} s after the {self.reason}"
+            self._start_stage(0)
+        else:
+            self._start_stage(min(self._stage + 1, p.local_recovery_attempts))
+
+    def _start_stage(self, stage: int) -> None:
+        p = self.params
+        if stage < p.local_recovery_attempts and self.last_good is not None:
+            radius = p.local_recovery_radius_m * (2.0 ** stage)
+            self.pf.init_around(self.last_good[:2], radius)
+            what = f"relocalizing within {radius:.1f} m of ({self.last_good[0]:.2f}, {self.last_good[1]:.2f})"
+        else:
+            stage = p.local_recovery_attempts
+            self.pf.init_uniform()
+            what = "global relocalization" if self._stage < stage else "cannot relocalize: global localization again"
+        self.pf_odom_pose = None
+        self.resample_count = 0
+        self._scores.clear()
+        self._updates_since_reset = 0
+        self._stage, self._stage_started_at = stage, self._now
+        self._set_state("lost", f"{what} (lost: {self.lost_reason})")

@@ -110,4 +110,49 @@ def run_mapping() -> list[BenchRow]:
             BenchRow("mapping.pose_rms_m", float(np.sqrt(np.mean(r.errors_m ** 2))), "m")]
 
 
-BENCHES = [("amcl", run), ("mapping", run_mapping)]
+#: real SLAM maps of the development data (maps/<folder>/<yaml>) the lost-detection bench runs on
+REAL_MAPS = [("mit_stata_basement", "stata_basement.yaml"), ("upenn_levine", "levine.yaml"),
+             ("ipa_izs_campus", "map.yaml")]
+
+
+def run_lost(seeds: tuple[int, ...] = (1, 2)) -> list[BenchRow]:
+    """Kidnapping and a 2 m corrupted initial pose on the real maps (realmap.kidnap_trial/initial_pose_trial):
+    per map the worst time to the "lost" verdict, and the outcomes; ``localization.lost_detect_s`` is the worst
+    over all maps."""
+    import os
+    from pathlib import Path
+
+    from services.localization.map_io import load_map
+    from services.localization.realmap import initial_pose_trial, kidnap_trial
+
+    root = Path(os.environ.get("ZAGV_SHARED", Path(__file__).resolve().parents[3] / "shared")) / "data" / "maps"
+    rows: list[BenchRow] = []
+    worst = 0.0
+    for folder, yaml in REAL_MAPS:
+        path = root / folder / yaml
+        if not path.is_file():
+            print(f"bench: localization.lost_* on {folder} skipped: {path} not found", file=sys.stderr)
+            continue
+        grid = load_map(path)
+        kid = [kidnap_trial(grid, s, AmclParams(random_seed=s)) for s in seeds]
+        ini = [initial_pose_trial(grid, s, AmclParams(random_seed=s)) for s in seeds]
+        detect = [t.detect_s for t in kid]
+        missed = sum(d is None for d in detect)
+        slowest = max((d for d in detect if d is not None), default=math.inf)
+        worst = max(worst, slowest if not missed else math.inf)
+        rows += [
+            BenchRow(f"localization.lost_detect_s.{folder}", slowest, "s",
+                     f"<= 1 (kidnapping, {len(seeds)} runs, {missed} not detected)"),
+            BenchRow(f"localization.kidnap_recovered.{folder}", sum(t.outcome == "recovered" for t in kid), "runs",
+                     f"of {len(seeds)}; reports_lost {sum(t.outcome == 'reports_lost' for t in kid)}, "
+                     f"tracking_wrong {sum(t.outcome == 'tracking_wrong' for t in kid)}"),
+            BenchRow(f"localization.initial_2m_recovered.{folder}", sum(t.outcome == "recovered" for t in ini),
+                     "runs", f"of {len(seeds)}; reports_lost {sum(t.outcome == 'reports_lost' for t in ini)}, "
+                             f"tracking_wrong {sum(t.outcome == 'tracking_wrong' for t in ini)}"),
+        ]
+    if rows:
+        rows.insert(0, BenchRow("localization.lost_detect_s", worst, "s", "<= 1 (worst over the real maps)"))
+    return rows
+
+
+BENCHES = [("amcl", run), ("mapping", run_mapping), ("localization", run_lost)]

@@ -11,6 +11,10 @@ Pixel -> occupancy probability: ``p = (255 - gray) / 255`` (darker is more occup
   opaque (alpha < 255) is unknown;
 - raw: the (negated) gray value itself, when in [0, 100], else unknown.
 
+Files are read with limits: the YAML must be a regular file of at most ``MAX_YAML_BYTES``, the image a regular file
+of at most ``MAX_IMAGE_BYTES`` and ``MAX_IMAGE_CELLS`` pixels, so a device (``/dev/zero``), a FIFO or a huge file is
+refused at once. Error messages name the file and the problem but never quote the file's content.
+
 Image row 0 is the map's top (max y); :class:`OccupancyMap` rows start at the origin (min y), as OccupancyGrid does.
 Saving writes a trinary PGM (254 free, 0 occupied, 205 unknown) with ``occupied_thresh: 0.65``, ``free_thresh:
 0.196``, ``negate: 0`` like map_saver.
@@ -18,7 +22,10 @@ Saving writes a trinary PGM (254 free, 0 occupied, 205 unknown) with ``occupied_
 
 from __future__ import annotations
 
+import io
 import math
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +40,9 @@ SAVE_FREE_PIXEL, SAVE_OCCUPIED_PIXEL, SAVE_UNKNOWN_PIXEL = 254, 0, 205
 SAVE_OCCUPIED_THRESH, SAVE_FREE_THRESH = 0.65, 0.196
 MODES = ("trinary", "scale", "raw")
 REQUIRED_KEYS = ("image", "resolution", "origin")
+MAX_YAML_BYTES = 64 * 1024
+MAX_IMAGE_BYTES = 256 * 1024 * 1024
+MAX_IMAGE_CELLS = 8000 * 8000
 
 
 class MapError(ValueError):
@@ -98,45 +108,80 @@ class OccupancyMap:
         return ox + c * gx - s * gy, oy + s * gx + c * gy
 
 
+def _shown(value: object) -> str:
+    """A value from a file as an error shows it: numbers as they are, anything else only by its type."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return repr(value)
+    return f"a {type(value).__name__}"
+
+
 def _number(meta: dict, key: str, path: Path) -> float:
     value = meta[key]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise MapError(f"map {path}: `{key}` must be a finite number, got {value!r}")
+        raise MapError(f"map {path}: `{key}` must be a finite number, got {_shown(value)}")
     return float(value)
+
+
+def read_limited(path: Path, limit_bytes: int, what: str) -> bytes:
+    """The bytes of ``path`` when it is a regular file of at most ``limit_bytes``; MapError otherwise (a device,
+    FIFO or folder is refused without reading from it)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        raise MapError(f"{what} {path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise MapError(f"{what} {path}: not a regular file")
+        if info.st_size > limit_bytes:
+            raise MapError(f"{what} {path}: {info.st_size} bytes, more than the {limit_bytes} allowed")
+        chunks, size = [], 0
+        while size <= limit_bytes and (chunk := os.read(fd, min(1 << 20, limit_bytes + 1 - size))):
+            chunks.append(chunk)
+            size += len(chunk)
+        data = b"".join(chunks)
+    except OSError as exc:
+        raise MapError(f"{what} {path}: cannot read: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if len(data) > limit_bytes:
+        raise MapError(f"{what} {path}: more than the {limit_bytes} bytes allowed")
+    return data
 
 
 def read_map_yaml(path: str | Path) -> dict:
     """Parse and validate a map YAML; returns the keys with defaults filled in and ``image`` made absolute."""
     path = Path(path)
+    raw = read_limited(path, MAX_YAML_BYTES, "map")
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise MapError(f"map {path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        meta = yaml.safe_load(text)
+        meta = yaml.safe_load(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise MapError(f"map {path}: not UTF-8 text (byte {exc.start})") from None
     except yaml.YAMLError as exc:
-        raise MapError(f"map {path}: YAML syntax error: {exc}") from None
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        raise MapError(f"map {path}: not a map YAML (syntax error{where})") from None
     if not isinstance(meta, dict):
-        raise MapError(f"map {path}: expected a mapping of keys, got {type(meta).__name__}")
+        raise MapError(f"map {path}: expected a mapping of keys, got {_shown(meta)}")
     missing = [k for k in REQUIRED_KEYS if k not in meta]
     if missing:
         raise MapError(f"map {path}: missing key(s) {', '.join(missing)}")
     if not isinstance(meta["image"], str) or not meta["image"]:
-        raise MapError(f"map {path}: `image` must be a file name, got {meta['image']!r}")
+        raise MapError(f"map {path}: `image` must be a file name, got {_shown(meta['image'])}")
     resolution = _number(meta, "resolution", path)
     if resolution <= 0:
         raise MapError(f"map {path}: `resolution` must be > 0, got {resolution}")
     origin = meta["origin"]
     if not isinstance(origin, (list, tuple)) or len(origin) != 3:
-        raise MapError(f"map {path}: `origin` must be [x, y, yaw] (3 numbers), got {origin!r}")
+        raise MapError(f"map {path}: `origin` must be [x, y, yaw] (3 numbers), got {_shown(origin)}")
     if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in origin):
-        raise MapError(f"map {path}: `origin` must hold finite numbers, got {origin!r}")
+        raise MapError(f"map {path}: `origin` must hold finite numbers, got [{', '.join(map(_shown, origin))}]")
     mode = meta.get("mode", "trinary")
     if mode not in MODES:
-        raise MapError(f"map {path}: `mode` must be one of {', '.join(MODES)}, got {mode!r}")
+        raise MapError(f"map {path}: `mode` must be one of {', '.join(MODES)}, got {_shown(mode)}")
     negate = meta.get("negate", 0)
     if negate not in (0, 1, True, False):
-        raise MapError(f"map {path}: `negate` must be 0 or 1, got {negate!r}")
+        raise MapError(f"map {path}: `negate` must be 0 or 1, got {_shown(negate)}")
     out = {"image": str((path.parent / meta["image"]).resolve()), "resolution": resolution,
            "origin": tuple(float(v) for v in origin), "mode": mode, "negate": bool(negate)}
     for key, default in (("occupied_thresh", SAVE_OCCUPIED_THRESH), ("free_thresh", SAVE_FREE_THRESH)):
@@ -150,10 +195,14 @@ def read_map_yaml(path: str | Path) -> dict:
 
 def _read_pixels(image_path: Path, yaml_path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Gray levels (mean of the colour channels, float 0..255) and the alpha channel (or None), image row order."""
-    if not image_path.is_file():
+    if not image_path.exists():
         raise MapError(f"map {yaml_path}: image {image_path} does not exist")
+    raw = read_limited(image_path, MAX_IMAGE_BYTES, f"map {yaml_path}: image")
     try:
-        with Image.open(image_path) as img:
+        with Image.open(io.BytesIO(raw)) as img:
+            if img.width * img.height > MAX_IMAGE_CELLS:
+                raise MapError(f"map {yaml_path}: image {image_path} has {img.width} x {img.height} pixels, more "
+                               f"than the {MAX_IMAGE_CELLS} allowed")
             img.load()
             if img.mode in ("P", "PA"):
                 img = img.convert("RGBA")
@@ -164,6 +213,8 @@ def _read_pixels(image_path: Path, yaml_path: Path) -> tuple[np.ndarray, np.ndar
             elif img.mode not in ("L", "LA", "RGB", "RGBA"):
                 img = img.convert("RGBA" if "A" in img.mode else "RGB")
             arr = np.asarray(img)
+    except MapError:
+        raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise MapError(f"map {yaml_path}: cannot read image {image_path}: {exc}") from None
     if arr.ndim == 2:

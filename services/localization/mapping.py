@@ -8,9 +8,9 @@
 - navigation: ``LocalizationNode`` (map server + AMCL), fed by this dispatcher.
 Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) into the
 maps folder and replies with the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
-whose frame starts at the current pose), or to navigation on ``map_yaml`` (a path, or a name in the maps folder;
-empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/``nomotion`` are
-answered by AMCL (refused while mapping).
+whose frame starts at the current pose), or to navigation on ``map_yaml`` (the name of a map in the maps folder,
+never a path; empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/
+``nomotion`` are answered by AMCL (refused while mapping).
 """
 
 from __future__ import annotations
@@ -77,7 +77,8 @@ class MappingNode:
         self.pending_scan: LaserScan | None = None
         self._newest_scan: LaserScan | None = None
         self.stats: dict[str, float] = {"scans": 0, "processed": 0, "skipped": 0, "bad_scans": 0,
-                                        "keyframes": 0, "loop_closures": 0, "cpu_ms_per_processed_scan": 0.0,
+                                        "keyframes": 0, "loop_closures": 0, "loop_closures_rejected": 0,
+                                        "scan_match_fallbacks": 0, "cpu_ms_per_processed_scan": 0.0,
                                         "cpu_ms_max": 0.0, "render_ms": 0.0}
         self._cpu_total_s = 0.0
         self._map_published_at = -math.inf
@@ -168,6 +169,8 @@ class MappingNode:
             s["processed"] = self.mapper.processed
             s["keyframes"] = self.mapper.slam.n_keyframes
             s["loop_closures"] = len(self.mapper.slam.loop_closures)
+            s["loop_closures_rejected"] = len(self.mapper.slam.rejected_closures)
+            s["scan_match_fallbacks"] = self.mapper.slam.fallback_matches
             s["cpu_ms_per_processed_scan"] = round(1e3 * self._cpu_total_s / self.mapper.processed, 2)
             s["cpu_ms_max"] = round(max(s["cpu_ms_max"], 1e3 * cpu), 2)
             self._map_dirty = True
@@ -182,9 +185,12 @@ class MappingNode:
         p = self.mapper.pose
         if p is None:
             return
+        slam = self.mapper.slam
+        # a scan that failed the match-quality gate was placed by odometry: report the odometry's spread
+        covariance = SLAM_COVARIANCE if slam.last_match_ok else [float(v) for v in slam.match_covariance().ravel()]
         self.out.pose.put(PoseWithCovariance(stamp=stamp, frame="map",
                                              pose=Pose2D(x=float(p[0]), y=float(p[1]), theta=float(p[2])),
-                                             covariance=list(SLAM_COVARIANCE)))
+                                             covariance=covariance))
 
     def _publish_tf(self, stamp: float) -> None:
         m = self.mapper.map_odom
@@ -234,6 +240,12 @@ class ModeSwitcher:
         self.node.queryable("localization/nomotion", self._amcl_query(lambda n, r: n.on_nomotion(r)))
         self.node.queryable("localization/save_map", self.on_save_map)
         self.node.queryable("localization/mode", self.on_mode)
+
+    def readiness(self) -> str | None:
+        """What readiness rests on (docs/readiness.md): mapping needs no input; navigation its map and filter."""
+        if self.mapping is not None:
+            return "mapping mode"
+        return self.nav.readiness() if self.nav is not None else None
 
     @property
     def mode(self) -> str:
@@ -306,15 +318,25 @@ class ModeSwitcher:
         self.log.info("map saved to %s", path)
         return Reply(ok=True, message=str(path))
 
-    def _resolve_map(self, map_yaml: str) -> Path | None:
-        if not map_yaml:
+    def _resolve_map(self, name: str) -> Path:
+        """The map a ``localization/mode`` request names: a map in the maps folder, chosen by name (``name`` or
+        ``name.yaml``), never by path; empty: the map saved last, else the configured one. Raises MapError."""
+        if not name:
             if self.last_saved is not None:
                 return self.last_saved
-            return Path(self.cfg.map_yaml) if self.cfg.map_yaml else None
-        path = Path(map_yaml)
-        if not path.is_absolute() and not path.exists() and self.maps_dir is not None:
-            inside = self.maps_dir / path
-            path = inside if inside.suffix == ".yaml" else inside.with_name(inside.name + ".yaml")
+            if self.cfg.map_yaml:
+                return Path(self.cfg.map_yaml)
+            raise MapError("navigation needs a map: give a map name or save a map first")
+        stem = name[:-5] if name.endswith(".yaml") else name
+        if not MAP_NAME.match(stem):
+            shown = repr(name[:80]) + ("..." if len(name) > 80 else "")
+            raise MapError(f"map {shown} is not a map name: 1-64 letters, digits, '_', '-' or '.', no path "
+                           "(maps are chosen by name from the maps folder)")
+        if self.maps_dir is None:
+            raise MapError("no maps folder: set localization.maps_dir or localization.state_dir")
+        path = self.maps_dir / f"{stem}.yaml"
+        if not path.exists():
+            raise MapError(f"no map named {stem!r} in the maps folder")
         return path
 
     def on_mode(self, req: ModeRequest) -> Reply:
@@ -327,13 +349,11 @@ class ModeSwitcher:
             self._start_mapping(start)
             return Reply(ok=True, message=f"mapping: a new map starting at ({start[0]:.3f}, {start[1]:.3f}, "
                                           f"{start[2]:.3f})")
-        path = self._resolve_map(req.map_yaml)
-        if path is None:
-            return Reply(ok=False, message="navigation needs a map: give map_yaml or save a map first")
         try:
+            path = self._resolve_map(req.map_yaml)
             load_map(path)
         except MapError as exc:
-            return Reply(ok=False, message=f"cannot navigate on {path}: {exc}")
+            return Reply(ok=False, message=f"cannot navigate: {exc}")
         changes: dict = {"map_yaml": str(path), "mode": "navigation"}
         if pose is not None:  # the saved map shares the mapping frame: AMCL starts where SLAM left the robot
             changes.update(initial_pose_x=pose[0], initial_pose_y=pose[1], initial_pose_yaw=pose[2],
@@ -351,6 +371,7 @@ class ModeSwitcher:
 async def run(ctx: ServiceContext) -> None:
     cfg: LocalizationConfig = ctx.config["localization"]
     switcher = ModeSwitcher(ctx, cfg)
+    ctx.node.spawn(ctx.node.ready_when(switcher.readiness, ctx.stop))
     period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else 1.0
     while not ctx.stop.is_set():
         stop = asyncio.ensure_future(ctx.stop.wait())

@@ -38,6 +38,7 @@ from services.common.service import ServiceContext
 from services.localization.amcl import Amcl, select_beams, wrap_angle
 from services.localization.config import MAPPING_MODULE, LocalizationConfig, mapping_available
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
+from services.localization.settle import AtRestSettler
 
 POSE_FILE = "localization_pose.json"
 Pose = tuple[float, float, float]
@@ -123,6 +124,8 @@ class LocalizationNode:
         self.last_particles_at = -math.inf
         self.stats: collections.Counter[str] = collections.Counter()
         self.initialised = False
+        self.settler = AtRestSettler()
+        self._reported_converged = False  # localizing until the estimate settled (no-motion updates at rest)
         self.pose_file = Path(cfg.state_dir) / POSE_FILE if cfg.state_dir else None
         outputs = outputs or Outputs.declare(self.node)
         self.pub_map, self.pub_pose, self.pub_tf, self.pub_particles = (
@@ -173,7 +176,25 @@ class LocalizationNode:
             self.initialised = False
             self.log.info("waiting for localization/initial_pose or localization/global")
             return
+        self._localizing_from(pose)
+
+    def _localizing_from(self, pose: Pose | None) -> None:
+        """The filter was (re)initialised: localizing until it settles; the start pose is published at once with
+        the covariance it really has, so that consumers have a pose (and know not to trust it yet)."""
+        assert self.amcl is not None
         self.initialised = True
+        self.settler.restart()
+        if pose is not None:
+            cov = self.amcl.pf.estimate().covariance
+            self._put_pose(self.ctx.clock.now(), pose, cov)
+
+    def readiness(self) -> str | None:
+        """What readiness rests on (docs/readiness.md), or None while the map and filter are not in hand."""
+        if self.amcl is None:
+            return None
+        if not self.initialised:
+            return "map loaded; waiting for localization/initial_pose or localization/global"
+        return "map loaded, filter initialised"
 
     def _read_saved_pose(self) -> tuple[Pose, np.ndarray] | None:
         if self.pose_file is None or not self.pose_file.is_file():
@@ -196,8 +217,9 @@ class LocalizationNode:
         return pose, cov
 
     def save_pose(self) -> None:
-        """Write the current estimate atomically to the state folder (no-op without one or before localizing)."""
-        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None:
+        """Write the current estimate atomically to the state folder (no-op without one, or while the filter does
+        not trust it: a lost pose must not become the next start's initial pose)."""
+        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None or self.amcl.state != "tracking":
             return
         est = self.amcl.estimate
         data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
@@ -278,21 +300,54 @@ class LocalizationNode:
         else:
             r = self.ctx.robot
             mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
-        updated = self.amcl.process(odom_pose, beams, mount)
+        before = self.amcl.state
+        updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp)
+        changed = self.amcl.state != before
+        if changed:
+            self._on_verdict(before)
         if updated:
             self.stats["filter_updates"] += 1
+        if (updated or changed) and self.amcl.estimate is not None:
             self._publish_pose(scan.stamp)
         self._publish_tf(scan.stamp)
         self._publish_particles()
+
+    def _on_verdict(self, before: str) -> None:
+        """Log and count a change of the filter's verdict (published with the next pose, sent at once)."""
+        assert self.amcl is not None
+        a = self.amcl
+        self.stats[f"became_{a.state}"] += 1
+        self.stats["state"] = a.state
+        self.stats["reason"] = a.reason
+        if a.state == "lost":
+            self.log.warning("localization lost (was %s): %s", before, a.reason)
+        else:
+            self.log.info("localization %s (was %s): %s", a.state, before, a.reason)
 
     # ------------------------------------------------------------------ outputs
 
     def _publish_pose(self, stamp: float) -> None:
         assert self.amcl is not None and self.amcl.estimate is not None
         est = self.amcl.estimate
-        x, y, th = est.pose
+        self._put_pose(stamp, est.pose, est.covariance)
+
+    def _put_pose(self, stamp: float, pose: Pose, covariance: np.ndarray) -> None:
+        x, y, th = (float(v) for v in pose)
+        a = self.amcl
+        assert a is not None
+        # the filter's verdict, held at localizing until the estimate has also settled at rest (settle.py)
+        state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
+        spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
         self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
-                                             covariance=est.covariance.reshape(-1).tolist()))
+                                             covariance=covariance.reshape(-1).tolist(), state=state,
+                                             match_score=a.match_score, spread_m=spread))
+        self.stats["state"] = state
+        self.stats["reason"] = a.reason
+        self.stats["match_score"] = round(a.match_score, 3)
+        if state == "tracking" and not self._reported_converged:
+            self.log.info("converged at (%.3f, %.3f, %.3f), spread %.3f m, after %d no-motion updates", x, y, th,
+                          spread, self.settler.updates)
+        self._reported_converged = state == "tracking"
 
     def _publish_tf(self, stamp: float) -> None:
         assert self.amcl is not None
@@ -341,7 +396,7 @@ class LocalizationNode:
             self.amcl.set_initial_pose((p.x, p.y, p.theta), cov)
         except ValueError as exc:
             return Reply(ok=False, message=str(exc))
-        self.initialised = True
+        self._localizing_from((p.x, p.y, p.theta))
         note = "" if self.grid.data[r, c] == FREE else " (note: that cell is not free in the map)"
         self.log.info("initial pose set to (%.3f, %.3f, %.3f)%s", p.x, p.y, p.theta, note)
         return Reply(ok=True, message=f"initial pose set to ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
@@ -351,7 +406,7 @@ class LocalizationNode:
             return problem
         assert self.amcl is not None
         self.amcl.global_localization()
-        self.initialised = True
+        self._localizing_from(None)
         self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
         return Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
 
@@ -373,6 +428,7 @@ async def run(ctx: ServiceContext) -> None:
         await importlib.import_module(MAPPING_MODULE).run(ctx)
         return
     loc = LocalizationNode(ctx, cfg)
+    ctx.node.spawn(ctx.node.ready_when(loc.readiness, ctx.stop))
     period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else None
     if period is None:
         await ctx.stop.wait()

@@ -9,24 +9,30 @@ then towards the lower cell index, so equal inputs give equal paths.
 A start inside the inscribed zone (a robot that was pushed near a wall) may move through inscribed cells, but only
 those connected to the start through inscribed cells: it can leave, never enter.
 
-Implementation choice (measured with ``zagv bench --only astar``): the search loop is plain Python over flat lists
-with a one-cell lethal border (no bounds checks). On a 1000x1000 map this is several times slower than compiled
-code (performance reference: ~1 s pure Python vs 55 ms C), but numba is not a dependency (a JIT adds hundreds of MB
-and seconds of compile time at every start on the robot's small PC) and scipy's csgraph Dijkstra explores the whole
-graph and needs it rebuilt on every costmap change. Real maps at 0.05 m (the corridor: 640x350 cells) plan in well
-under a second, and the node plans in a worker thread at 1 Hz, so the controller keeps its 20 Hz.
+Implementation (measured with ``zagv bench --only astar``, docs/performance.md): the search loop is a small C
+extension, ``services/nav/_astar.c``, built by setuptools at install. It does the same arithmetic in the same order
+and orders its heap like ``heapq`` on ``(key, cell)``, so it expands the same cells and returns the same path as the
+pure-Python loop (``AStarPlanner(compiled=False)``), which stays as the reference the tests compare against and as
+the fallback where the extension could not be built (a warning says so).
 """
 
 from __future__ import annotations
 
 import heapq
+import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
 from services.nav.costmap import INSCRIBED, LETHAL, MAX_NON_OBSTACLE, NO_INFORMATION, Costmap2D
+
+try:
+    from services.nav import _astar
+except ImportError as exc:  # no C compiler at install: the pure-Python loop, same paths, ~15x slower
+    _astar = None
+    logging.getLogger(__name__).warning("A* runs its pure-Python loop: the compiled search is not built (%s)", exc)
 
 SQRT2 = math.sqrt(2.0)
 #: heap key f - TIE_BREAK * g: equal f expands the larger g first; costs at most a relative 1e-9 of optimality
@@ -49,11 +55,16 @@ class PlanResult:
 
 @dataclass
 class AStarPlanner:
-    """``cost_weight`` scales how much a cell's cost adds to its length (Smac's cost_travel_multiplier)."""
+    """``cost_weight`` scales how much a cell's cost adds to its length (Smac's cost_travel_multiplier);
+    ``compiled`` picks the C search loop when it is built (False: the pure-Python reference loop)."""
 
     cost_weight: float = 3.0
     allow_unknown: bool = False
-    _buffers: dict = field(default_factory=dict, repr=False)
+    compiled: bool = True
+
+    @property
+    def uses_compiled(self) -> bool:
+        return self.compiled and _astar is not None
 
     def plan(self, cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], resolution: float = 1.0
              ) -> PlanResult:
@@ -75,6 +86,37 @@ class AStarPlanner:
         if gc == NO_INFORMATION and not self.allow_unknown:
             return PlanResult(empty, error="goal is in unknown space (allow_unknown is off)")
 
+        if self.uses_compiled:
+            return self._plan_compiled(cost, start, goal, resolution)
+        return self._plan_python(cost, start, goal, resolution)
+
+    def _escape(self, cost: np.ndarray, start: tuple[int, int]) -> np.ndarray:
+        """The inscribed cells 8-connected to the start's inscribed cell (which the search may leave through)."""
+        labels, _ = ndimage.label(cost == INSCRIBED, structure=np.ones((3, 3)))
+        return labels == labels[start]
+
+    def _plan_compiled(self, cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], resolution: float
+                       ) -> PlanResult:
+        h, w = cost.shape
+        escape = None
+        if cost[start] == INSCRIBED:
+            escape = np.ascontiguousarray(self._escape(cost, start), dtype=np.uint8)
+        cells, g_goal, expanded = _astar.plan(np.ascontiguousarray(cost, dtype=np.uint8), h, w,
+                                              (int(start[0]), int(start[1])), (int(goal[0]), int(goal[1])),
+                                              float(self.cost_weight), bool(self.allow_unknown), escape)
+        if cells is None:
+            return PlanResult(np.zeros((0, 2), dtype=np.int64), expanded=expanded,
+                              error=f"no path: the goal is not reachable from the start ({expanded} cells searched)")
+        return PlanResult(np.frombuffer(cells, dtype=np.int64).reshape(-1, 2).copy(), cost=g_goal * resolution,
+                          expanded=expanded)
+
+    def _plan_python(self, cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], resolution: float
+                     ) -> PlanResult:
+        """The reference loop in plain Python over flat lists (same result as the compiled loop)."""
+        h, w = cost.shape
+        si, sj = start
+        gi, gj = goal
+        empty = np.zeros((0, 2), dtype=np.int64)
         W = w + 2  # padded width
         # padded grid with a lethal border; blocked cells start out closed, so the loop needs one test per neighbour
         padded = np.full((h + 2, w + 2), LETHAL, dtype=np.uint8)
@@ -85,8 +127,8 @@ class AStarPlanner:
             blocked &= padded != NO_INFORMATION
         if padded[si + 1, sj + 1] == INSCRIBED:
             # escape: the inscribed cells connected to the start are passable (at the highest cost)
-            labels, _ = ndimage.label(padded == INSCRIBED, structure=np.ones((3, 3)))
-            escape = labels == labels[si + 1, sj + 1]
+            escape = np.zeros(padded.shape, dtype=bool)
+            escape[1:-1, 1:-1] = self._escape(cost, (si, sj))
             blocked &= ~escape
             mult[escape] = 1.0 + self.cost_weight
         m = mult.ravel().tolist()

@@ -23,6 +23,8 @@ class CostmapConfig(msgspec.Struct, forbid_unknown_fields=True):
     lethal_threshold: int = 65
     track_unknown: bool = True
     size_m: float = 5.0  # local (rolling) window only
+    # scan marks this close to a wall of the static map are that wall seen again, not applied (global: 0.15)
+    static_wall_tolerance_m: float = 0.0
 
 
 class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -43,6 +45,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     allow_unknown: bool = False
     path_spacing_m: float = 0.05
     min_replan_interval_s: float = 0.5  # immediate replans (blocked path) at most this often
+    # periodic replans take at most this share of the time (a search of d s is followed by d (1 - duty) / duty)
+    planner_max_duty: float = 0.25
     # goal checker (0: the robot's Table 2 tolerances)
     xy_goal_tolerance_m: float = 0.0
     yaw_goal_tolerance_rad: float = 0.0
@@ -68,8 +72,10 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     required_movement_radius_m: float = 0.3
     required_movement_angle_rad: float = 0.5
     movement_time_allowance_s: float = 15.0
-    # recoveries
-    max_recoveries: int = 4
+    # recoveries: escapes per stuck episode (the ladders in navigator.py)
+    max_recoveries: int = 6
+    recovery_reset_distance_m: float = 2.0  # moved this far from where an episode began: the next one starts afresh
+    recovery_wait_s: float = 5.0  # the "wait" escape stands still this long
     controller_patience_s: float = 3.0
     spin_angle_rad: float = 1.57
     backup_distance_m: float = 0.25
@@ -77,6 +83,13 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     recovery_timeout_s: float = 20.0
     # inputs
     pose_timeout_s: float = 2.0
-    global_costmap: CostmapConfig = msgspec.field(default_factory=lambda: CostmapConfig(update_frequency_hz=1.0))
+    # a localization correction larger than this clears the obstacle layers (their marks used the wrong pose)
+    clear_on_pose_jump_m: float = 0.5
+    clear_on_pose_jump_rad: float = 0.35
+    #: while localization's verdict is not ``tracking`` the robot holds still (no planning, no driving, no
+    #: success); a goal still held after this long fails, naming the verdict
+    localization_lost_timeout_s: float = 30.0
+    global_costmap: CostmapConfig = msgspec.field(
+        default_factory=lambda: CostmapConfig(update_frequency_hz=1.0, static_wall_tolerance_m=0.15))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)
     dwa: DwaConfig = msgspec.field(default_factory=DwaConfig)

@@ -198,10 +198,11 @@ class StaticLayer:
 
 @dataclass
 class ScanObservation:
-    """A laser scan in the costmap frame: sensor origin (m, rad) and per-beam angle (rad, costmap frame), range."""
+    """A laser scan in the costmap frame: sensor origin (m; one for the scan, or one per beam when the scan is
+    de-skewed for the robot's motion while it was taken) and per-beam angle (rad, costmap frame), range."""
 
-    origin_x: float
-    origin_y: float
+    origin_x: float | np.ndarray
+    origin_y: float | np.ndarray
     angles: np.ndarray
     ranges: np.ndarray
     range_min: float
@@ -222,6 +223,8 @@ class ObstacleLayer:
     raytrace_max_range_m: float = 3.0
     footprint_clearing: bool = True
     grid: np.ndarray | None = None  # uint8 LETHAL/FREE, master's shape
+    #: cells whose marks are not applied (master's shape): the static map's walls grown by a tolerance
+    ignore: np.ndarray | None = None
     _geometry: tuple[float, float, float] = (0.0, 0.0, 0.0)
     marked_cells: int = field(default=0)
 
@@ -252,6 +255,8 @@ class ObstacleLayer:
         use = hit | no_return
         if not use.any():
             return
+        ox = np.broadcast_to(np.asarray(obs.origin_x, dtype=np.float64), a.shape)[use]
+        oy = np.broadcast_to(np.asarray(obs.origin_y, dtype=np.float64), a.shape)[use]
         a, r, hit = a[use], r[use], hit[use]
         clear_len = np.where(hit, np.minimum(r, self.raytrace_max_range_m), self.raytrace_max_range_m)
         res = master.resolution
@@ -262,15 +267,15 @@ class ObstacleLayer:
             # sample each ray up to (not including) its end cell
             d = np.minimum(t[None, :], clear_len[:, None])
             valid = t[None, :] < (clear_len[:, None] - 0.5 * res)
-            xs = obs.origin_x + d * np.cos(a)[:, None]
-            ys = obs.origin_y + d * np.sin(a)[:, None]
+            xs = ox[:, None] + d * np.cos(a)[:, None]
+            ys = oy[:, None] + d * np.sin(a)[:, None]
             i, j = master.world_to_map(xs[valid], ys[valid])
             ok = master.in_bounds(i, j)
             self.grid[i[ok], j[ok]] = FREE
         mark = hit & (r <= self.obstacle_max_range_m)
         if mark.any():
-            mx = obs.origin_x + r[mark] * np.cos(a[mark])
-            my = obs.origin_y + r[mark] * np.sin(a[mark])
+            mx = ox[mark] + r[mark] * np.cos(a[mark])
+            my = oy[mark] + r[mark] * np.sin(a[mark])
             i, j = master.world_to_map(mx, my)
             ok = master.in_bounds(i, j)
             self.grid[i[ok], j[ok]] = LETHAL
@@ -301,6 +306,8 @@ class ObstacleLayer:
         assert self.grid is not None
         i0, j0, i1, j1 = whole(master) if bounds is None else bounds
         target, marks = master.cost[i0:i1, j0:j1], self.grid[i0:i1, j0:j1]
+        if self.ignore is not None and self.ignore.shape == master.cost.shape:
+            marks = np.where(self.ignore[i0:i1, j0:j1], FREE, marks).astype(np.uint8)
         np.maximum(target, marks, out=target, where=(target != NO_INFORMATION) | (marks > 0))
 
 
@@ -407,14 +414,20 @@ class LayeredCostmap:
 class GlobalCostmap(LayeredCostmap):
     """Costmap over the whole static map (its geometry follows the map).
 
+    Scan marks within ``static_wall_tolerance_m`` of a wall of the static map are not applied: they are that wall
+    seen again, displaced by localization and timing error, and a path-planning costmap that keeps them (the global
+    costmap never forgets a mark no beam passes through) narrows every doorway the robot has looked at until the
+    planner finds no way through. The local costmap, which the controller checks trajectories against, keeps them.
+
     Updates are incremental, like Nav2's updateBounds/updateCosts: scans and footprint clearing only change cells
     within their reach of the robot, so ``update`` recomputes that window (grown by the inflation radius) and
     keeps the rest of the master grid. A new map or cleared obstacles recompute everything.
     """
 
     def __init__(self, master: Costmap2D, static: StaticLayer, obstacles: ObstacleLayer | None,
-                 inflation: InflationLayer, footprint: Footprint) -> None:
+                 inflation: InflationLayer, footprint: Footprint, static_wall_tolerance_m: float = 0.0) -> None:
         super().__init__(master, static, obstacles, inflation, footprint)
+        self.static_wall_tolerance_m = static_wall_tolerance_m
         self._full = True
         self._dirty: list[float] | None = None  # world x_min, y_min, x_max, y_max changed since the last update
 
@@ -423,6 +436,11 @@ class GlobalCostmap(LayeredCostmap):
         self.master = Costmap2D(resolution, origin_x, origin_y, np.zeros(np.shape(data), dtype=np.uint8))
         if self.obstacles is not None:
             self.obstacles.grid = None
+            self.obstacles.ignore = None
+            walls = self.static.grid.cost == LETHAL if self.static.grid is not None else None
+            if self.static_wall_tolerance_m > 0 and walls is not None and walls.any():
+                self.obstacles.ignore = (ndimage.distance_transform_edt(~walls, sampling=resolution)
+                                         <= self.static_wall_tolerance_m + 1e-6)
         self.inflation.distance_m = None
         self._full = True
         self.update()
@@ -437,7 +455,9 @@ class GlobalCostmap(LayeredCostmap):
         super().add_scan(obs)
         if self.obstacles is not None:
             reach = max(self.obstacles.raytrace_max_range_m, self.obstacles.obstacle_max_range_m)
-            self._touch(obs.origin_x, obs.origin_y, reach + self.master.resolution)
+            ox, oy = np.asarray(obs.origin_x), np.asarray(obs.origin_y)
+            spread = float(max(np.ptp(ox), np.ptp(oy))) if ox.size > 1 else 0.0
+            self._touch(float(ox.mean()), float(oy.mean()), reach + spread + self.master.resolution)
 
     def clear_footprint(self, x: float, y: float, theta: float) -> None:
         super().clear_footprint(x, y, theta)

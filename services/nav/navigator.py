@@ -13,8 +13,12 @@ Control phases of a goal:
 4. fine approach within ``fine_approach_distance_m``: a P-controller on the goal pose (holonomic: x, y and theta
    at once), speeds limited by sqrt(2 a d) so it stops without overshoot, until the errors are below the fine
    targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached).
-Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) run the
-recoveries in turn (clear costmaps, spin, back up) up to ``max_recoveries``, then the goal fails with the reason.
+Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) climb a
+ladder of escapes, each of which changes something: for a failed search clear the costmaps, wait (a person or cart
+may move away), replan with relaxed costs (no clearance preference: a tighter route), spin (look around), back up;
+for a stuck controller clear, back up, spin, relax, wait. After ``max_recoveries`` steps of one stuck episode the goal
+fails with the reason; once the robot has moved ``recovery_reset_distance_m`` from where the episode began, the next
+failure starts a new episode at the bottom of the ladder (a long route may meet several unrelated obstacles).
 """
 
 from __future__ import annotations
@@ -43,7 +47,10 @@ from services.nav.costmap import (
 from services.nav.dwa import DwaPlanner, Limits, wrap
 
 TERMINAL = ("succeeded", "failed", "canceled")
-RECOVERIES = ("clear_costmaps", "spin", "backup")
+#: escapes, in the order tried, when the search failed and when the controller is stuck
+PLAN_LADDER = ("clear_costmaps", "wait", "relax_costs", "spin", "backup")
+CONTROL_LADDER = ("clear_costmaps", "backup", "spin", "relax_costs", "wait")
+RECOVERIES = tuple(dict.fromkeys(PLAN_LADDER + CONTROL_LADDER))
 
 
 @dataclass
@@ -53,6 +60,7 @@ class PlanRequest:
     start: tuple[float, float, float]
     goal: tuple[float, float, float]
     goal_seq: int
+    requested_at: float | None = None  # controller time of the snapshot (None: unknown, the search counts as free)
 
 
 @dataclass
@@ -61,6 +69,7 @@ class PlanOutcome:
     error: str
     goal_seq: int
     expanded: int = 0
+    requested_at: float | None = None
 
 
 @dataclass
@@ -72,6 +81,7 @@ class GoalState:
     path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     path_index: int = 0
     last_plan_at: float = -math.inf
+    last_plan_duration_s: float = 0.0
     plan_now: bool = True
     planning: bool = False
     phase: str = "planning"
@@ -81,11 +91,14 @@ class GoalState:
     loc_updated: bool = False
     loc_updated_at: float = 0.0
     loc_updates: int = 0
-    xy_latched: bool = False
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
     stuck_since: float | None = None
-    recoveries: int = 0
+    recoveries: int = 0  # escapes used for this goal
+    ladder_step: int = 0  # escapes used in the current stuck episode
+    episode_pose: tuple[float, float, float] | None = None  # where that episode began
+    relaxed: bool = False  # plan without the clearance preference (an escape)
+    recovery_log: list[str] = field(default_factory=list)  # the escapes used, in order
     recovery: str = ""
     recovery_start: tuple[float, float, float] | None = None
     recovery_at: float = 0.0
@@ -120,7 +133,8 @@ class Navigator:
             return StaticLayer(cc.lethal_threshold, cc.track_unknown), obs, infl
 
         gs, go, gi = costmap_layers(config.global_costmap)
-        self.global_costmap = GlobalCostmap(Costmap2D.empty(1, 1, 0.05), gs, go, gi, self.footprint)
+        self.global_costmap = GlobalCostmap(Costmap2D.empty(1, 1, 0.05), gs, go, gi, self.footprint,
+                                            config.global_costmap.static_wall_tolerance_m)
         ls, lo, li = costmap_layers(config.local_costmap)
         self.local_costmap = RollingCostmap(config.local_costmap.size_m, 0.05, ls, lo, li, self.footprint)
         self.has_map = False
@@ -229,6 +243,11 @@ class Navigator:
         self._finish("canceled", "canceled by request")
         return True, f"goal {self.goal.id} canceled"
 
+    def fail(self, now: float, reason: str) -> None:
+        """End the active goal as failed for a reason found outside the navigator (e.g. localization lost)."""
+        if self.goal is not None and self.state not in TERMINAL and self.state != "idle":
+            self._finish("failed", reason, now)
+
     def start_sequence(self, now: float, waypoints: list[tuple[str, tuple[float, float, float]]], seq_id: str = ""
                        ) -> tuple[bool, str, str]:
         if not waypoints:
@@ -330,21 +349,27 @@ class Navigator:
     # ------------------------------------------------------------------ planning
 
     def plan_due(self, now: float) -> bool:
-        """Whether a (re)plan should start now: a new goal, the planner period, or a blocked path."""
+        """Whether a (re)plan should start now: a new goal or a blocked path at once; otherwise every planner
+        period, but no more than ``planner_max_duty`` of the time: on a large map a search that takes d seconds
+        is followed by at least d (1 - duty) / duty of rest, so the search (pure Python, holding the interpreter)
+        does not starve the controller."""
         g = self.goal
         if g is None or self.state in TERMINAL or g.planning or g.phase == "fine" or g.recovery:
             return False
-        return g.plan_now or now - g.last_plan_at >= 1.0 / self.config.planner_frequency_hz
+        duty = min(max(self.config.planner_max_duty, 1e-3), 1.0)
+        period = max(1.0 / self.config.planner_frequency_hz, g.last_plan_duration_s * (1.0 - duty) / duty)
+        return g.plan_now or now - g.last_plan_at >= period
 
-    def make_request(self, pose: tuple[float, float, float]) -> PlanRequest:
+    def make_request(self, pose: tuple[float, float, float], now: float | None = None) -> PlanRequest:
         """Snapshot what the search needs (called on the loop thread; the search may run elsewhere)."""
         cm = self.global_costmap
-        cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m,
-                             self.config.clearance_m)
+        assert self.goal is not None
+        clearance = 0.0 if self.goal.relaxed else self.config.clearance_m
+        cost = planning_cost(cm.master, cm.inflation.distance_m, self.footprint.inscribed_radius_m, clearance)
         snapshot = Costmap2D(cm.master.resolution, cm.master.origin_x, cm.master.origin_y, cost)
         assert self.goal is not None
         self.goal.planning = True
-        return PlanRequest(cost, snapshot, pose, self.goal.pose, self.goal.seq)
+        return PlanRequest(cost, snapshot, pose, self.goal.pose, self.goal.seq, now)
 
     def compute_plan(self, req: PlanRequest) -> PlanOutcome:
         cm = req.costmap
@@ -352,10 +377,10 @@ class Navigator:
         gi, gj = cm.world_to_map(req.goal[0], req.goal[1])
         res: PlanResult = self.planner.plan(req.cost, (int(si), int(sj)), (int(gi), int(gj)), cm.resolution)
         if not res.ok:
-            return PlanOutcome(np.zeros((0, 3)), res.error, req.goal_seq, res.expanded)
+            return PlanOutcome(np.zeros((0, 3)), res.error, req.goal_seq, res.expanded, req.requested_at)
         cells = smooth_cells(req.cost, res.cells)
         path = cells_to_path(cm, cells, req.start[:2], req.goal, self.config.path_spacing_m)
-        return PlanOutcome(path, "", req.goal_seq, res.expanded)
+        return PlanOutcome(path, "", req.goal_seq, res.expanded, req.requested_at)
 
     def apply_plan(self, now: float, out: PlanOutcome, pose: tuple[float, float, float]) -> None:
         g = self.goal
@@ -364,6 +389,7 @@ class Navigator:
         g.planning = False
         g.plan_now = False
         g.last_plan_at = now
+        g.last_plan_duration_s = max(now - out.requested_at, 0.0) if out.requested_at is not None else 0.0
         if out.error:
             g.last_error = f"planning failed: {out.error}"
             if len(g.path) == 0 or g.phase == "planning" or self._path_blocked():
@@ -518,9 +544,9 @@ class Navigator:
         ex, ey = g.pose[0] - pose[0], g.pose[1] - pose[1]
         eth = float(wrap(g.pose[2] - pose[2]))
         dxy = math.hypot(ex, ey)
-        if dxy < self.xy_tol:
-            g.xy_latched = True
-        within_tol = (dxy < self.xy_tol or g.xy_latched and dxy < 2 * self.xy_tol) and abs(eth) < self.yaw_tol
+        # success is claimed only with the estimate inside the tolerance itself (no latch at twice the tolerance:
+        # a robot judged by where it is must not be called arrived 0.09 m off)
+        within_tol = dxy < self.xy_tol and abs(eth) < self.yaw_tol
         fine_done = dxy < cfg.fine_xy_target_m and abs(eth) < cfg.fine_yaw_target_rad
         timed_out = now - g.fine_since > cfg.fine_timeout_s
         self.state = "rotating" if dxy < self.xy_tol else "driving"
@@ -597,11 +623,19 @@ class Navigator:
         g = self.goal
         assert g is not None
         g.last_error = reason
-        if g.recoveries >= self.config.max_recoveries:
-            self._finish("failed", f"{reason} (after {g.recoveries} recoveries)", now, pose)
+        ep = g.episode_pose
+        if ep is not None and math.hypot(pose[0] - ep[0], pose[1] - ep[1]) >= self.config.recovery_reset_distance_m:
+            g.ladder_step, g.relaxed, g.episode_pose = 0, False, None  # a new, unrelated episode
+        if g.ladder_step >= self.config.max_recoveries:
+            self._finish("failed", f"{reason} (after {g.ladder_step} recoveries)", now, pose)
             return
-        g.recovery = RECOVERIES[g.recoveries % len(RECOVERIES)]
+        ladder = PLAN_LADDER if reason.startswith("planning failed") else CONTROL_LADDER
+        g.recovery = ladder[g.ladder_step % len(ladder)]
+        if g.ladder_step == 0:
+            g.episode_pose = pose
+        g.ladder_step += 1
         g.recoveries += 1
+        g.recovery_log.append(g.recovery)
         g.recovery_start = pose
         g.recovery_at = now
         g.recovery_turned = 0.0
@@ -626,6 +660,14 @@ class Navigator:
             self.clear_costmaps()
             self.update_costmaps(pose)
             self._end_recovery(now, pose)
+            return (0.0, 0.0, 0.0)
+        if g.recovery == "relax_costs":
+            g.relaxed = True
+            self._end_recovery(now, pose)
+            return (0.0, 0.0, 0.0)
+        if g.recovery == "wait":
+            if now - g.recovery_at >= self.config.recovery_wait_s:
+                self._end_recovery(now, pose)
             return (0.0, 0.0, 0.0)
         if now - g.recovery_at > self.config.recovery_timeout_s:
             self._end_recovery(now, pose)

@@ -14,14 +14,17 @@ Outputs: ``cmd_vel`` at ``controller_frequency_hz`` while a goal runs (then one 
 from __future__ import annotations
 
 import asyncio
+import bisect
 import math
+from collections import deque
 
 import numpy as np
 
 from proto import codec
 from proto import messages as m
 from services.common.clock import Rate
-from services.common.node import QueryError
+from services.common.grid import YAW_EPS_RAD, axis_aligned
+from services.common.query import QueryError
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
@@ -42,9 +45,13 @@ def inverse(a: Pose) -> Pose:
 
 
 class PoseTracker:
-    """The robot's map pose from localization and odometry (module docstring)."""
+    """The robot's map pose from localization and odometry (module docstring). Keeps the last ``history_s`` of
+    odometry so that a scan is placed with the pose at the time its beams were taken (``at``), not when it
+    arrived: a scan processed 50 ms late while turning at 0.5 rad/s would put a wall 2.5 m away 6 cm off."""
 
-    def __init__(self) -> None:
+    def __init__(self, history_s: float = 2.0) -> None:
+        self.history_s = history_s
+        self.odom_history: deque[tuple[float, Pose]] = deque()
         self.odom: Pose | None = None
         self.odom_stamp = -math.inf
         self.map_odom: Pose | None = None
@@ -52,11 +59,43 @@ class PoseTracker:
         self.pose_stamp = -math.inf
         self.tf_stamp = -math.inf
         self.odom_at_pose: Pose | None = None
+        #: localization's verdict on its last pose (``tracking`` is the only one nav drives on)
+        self.loc_state = "tracking"
+        self.loc_detail = ""
 
     def on_odom(self, msg: m.Odometry) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
         if all(math.isfinite(v) for v in p):
             self.odom, self.odom_stamp = p, msg.stamp
+            h = self.odom_history
+            if h and msg.stamp < h[-1][0]:
+                h.clear()  # time went back (a restarted simulator)
+            h.append((msg.stamp, p))
+            while h and h[0][0] < msg.stamp - self.history_s:
+                h.popleft()
+
+    def odom_at(self, stamp: float) -> Pose | None:
+        """Odometry pose at ``stamp``, linearly interpolated (theta along the shorter arc); None outside the
+        history."""
+        h = self.odom_history
+        if not h or not h[0][0] <= stamp <= h[-1][0]:
+            return None
+        k = bisect.bisect_left(h, stamp, key=lambda e: e[0])
+        t1, b = h[k]
+        if k == 0 or t1 == stamp:
+            return b
+        t0, a = h[k - 1]
+        f = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
+        dth = math.remainder(b[2] - a[2], 2 * math.pi)
+        return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * dth)
+
+    def at(self, stamp: float) -> Pose | None:
+        """The map pose at ``stamp`` (map->odom composed with the odometry then); the current pose when the
+        odometry history does not cover ``stamp``."""
+        odom = self.odom_at(stamp)
+        if odom is None or self.map_odom is None:
+            return self.current()
+        return compose(self.map_odom, odom)
 
     def on_tf(self, msg: m.Transform2D) -> None:
         p = (msg.x, msg.y, msg.theta)
@@ -65,6 +104,8 @@ class PoseTracker:
 
     def on_pose(self, msg: m.PoseWithCovariance) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
+        self.loc_state = msg.state
+        self.loc_detail = f"scan match {msg.match_score:.2f}, spread {msg.spread_m:.2f} m"
         if all(math.isfinite(v) for v in p):
             self.pose, self.pose_stamp = p, msg.stamp
             self.odom_at_pose = self.odom
@@ -109,7 +150,7 @@ async def run(ctx: ServiceContext) -> None:
     pub_path = node.publisher("nav/path", latched=True)
     pub_local = node.publisher("nav/local_plan")
     pub_status = node.publisher("nav/status", latched=True)
-    pub_costmap = node.publisher("nav/costmap", latched=True)
+    pub_costmap = node.publisher("nav/costmap", latched=True, block=False)  # large and periodic: may drop
 
     def on_map(msg: m.OccupancyGrid) -> None:
         data = codec.array(msg, "data")
@@ -117,29 +158,53 @@ async def run(ctx: ServiceContext) -> None:
             log.warning("ignored map: %dx%d cells with %d values, resolution %s", msg.width, msg.height, data.size,
                         msg.resolution)
             return
-        if abs(msg.origin.theta) > 1e-6:
-            log.warning("map origin has a yaw of %.3f rad; nav assumes an axis-aligned map", msg.origin.theta)
-        nav.set_map(data.reshape(msg.height, msg.width), msg.resolution, msg.origin.x, msg.origin.y)
+        grid, ox, oy = axis_aligned(data.reshape(msg.height, msg.width), msg.resolution,
+                                    (msg.origin.x, msg.origin.y, msg.origin.theta), fill=-1)
+        if abs(msg.origin.theta) > YAW_EPS_RAD:
+            log.info("map origin has a yaw of %.4f rad: costmaps use it resampled onto %dx%d axis-aligned cells",
+                     msg.origin.theta, grid.shape[1], grid.shape[0])
+        nav.set_map(grid, msg.resolution, ox, oy)
         log.info("map %dx%d at %.3f m", msg.width, msg.height, msg.resolution)
 
     last_scan = [-math.inf]
 
     def on_scan(msg: m.LaserScan) -> None:
-        pose = tracker.current()
         now = clock.now()
-        if pose is None or 0.0 <= now - last_scan[0] < 1.0 / cfg.scan_integration_hz:
+        if tracker.current() is None or 0.0 <= now - last_scan[0] < 1.0 / cfg.scan_integration_hz:
             return
         last_scan[0] = now
         ranges = codec.array(msg, "ranges")
         if not msg.angle_increment or ranges.size == 0:
             return
-        sensor = compose(pose, (msg.mount.x, msg.mount.y, msg.mount.theta))
-        angles = sensor[2] + msg.angle_min + np.arange(ranges.size) * msg.angle_increment
-        nav.add_scan(ScanObservation(sensor[0], sensor[1], angles, ranges, msg.range_min, msg.range_max))
+        # the sensor pose at the first and the last beam; beams in between are placed on the line between them
+        duration = msg.time_increment * (ranges.size - 1) if msg.time_increment > 0 else 0.0
+        mount = (msg.mount.x, msg.mount.y, msg.mount.theta)
+        first = compose(tracker.at(msg.stamp), mount)
+        last = compose(tracker.at(msg.stamp + duration), mount)
+        f = np.linspace(0.0, 1.0, ranges.size)
+        dth = math.remainder(last[2] - first[2], 2 * math.pi)
+        xs = first[0] + f * (last[0] - first[0])
+        ys = first[1] + f * (last[1] - first[1])
+        angles = first[2] + f * dth + msg.angle_min + np.arange(ranges.size) * msg.angle_increment
+        nav.add_scan(ScanObservation(xs, ys, angles, ranges, msg.range_min, msg.range_max))
 
     node.subscribe("map", on_map, latched=True)
     node.subscribe("odom", tracker.on_odom)
-    node.subscribe("tf/map_odom", tracker.on_tf, latched=True)  # a restarted nav knows the pose at once
+    def on_tf(msg: m.Transform2D) -> None:
+        before = tracker.current()
+        tracker.on_tf(msg)
+        after = tracker.current()
+        if before is None or after is None:
+            return
+        jump_m = math.hypot(after[0] - before[0], after[1] - before[1])
+        jump_rad = abs(math.remainder(after[2] - before[2], 2 * math.pi))
+        if jump_m > cfg.clear_on_pose_jump_m or jump_rad > cfg.clear_on_pose_jump_rad:
+            # the marks so far were placed with a pose localization now says was wrong (relocalized, kidnapped)
+            nav.clear_costmaps()
+            log.info("pose jumped %.2f m, %.2f rad (localization corrected itself): obstacle layers cleared",
+                     jump_m, jump_rad)
+
+    node.subscribe("tf/map_odom", on_tf, latched=True)  # a restarted nav knows the pose at once
     loc_state = {"answered": False}
 
     def on_pose(msg: m.PoseWithCovariance) -> None:
@@ -233,11 +298,18 @@ async def run(ctx: ServiceContext) -> None:
             nav.update_costmaps(pose)
         return m.Reply(ok=True, message="obstacle layers cleared")
 
-    node.queryable("nav/goal", on_goal)
-    node.queryable("nav/cancel", on_cancel)
-    node.queryable("nav/waypoints", on_waypoints)
-    node.queryable("nav/waypoints/control", on_control)
-    node.queryable("nav/clear_costmaps", on_clear)
+    async def serve_when_ready() -> None:
+        """Once the map and a pose are in hand (both latched: they come whatever the start order), declare the
+        queries and the health token. Until then a goal finds no queryable, and its client waits (query.py)
+        instead of being refused for a map nav has not received yet."""
+        await node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
+                              ctx.stop, declare=lambda: [node.queryable("nav/goal", on_goal),
+                                                         node.queryable("nav/cancel", on_cancel),
+                                                         node.queryable("nav/waypoints", on_waypoints),
+                                                         node.queryable("nav/waypoints/control", on_control),
+                                                         node.queryable("nav/clear_costmaps", on_clear)])
+
+    node.spawn(serve_when_ready())
 
     if getattr(clock, "is_sim", False):
         await clock.wait_started()  # type: ignore[attr-defined]
@@ -245,6 +317,7 @@ async def run(ctx: ServiceContext) -> None:
     rate = Rate(clock, cfg.controller_frequency_hz)
     next_local = next_global = next_costmap_pub = next_status = next_local_pub = clock.now()
     was_active = False
+    untrusted_since: float | None = None
     plan_task: asyncio.Task | None = None
 
     async def plan_job(req) -> None:  # noqa: ANN001
@@ -262,24 +335,8 @@ async def run(ctx: ServiceContext) -> None:
         elif nav.goal is not None and nav.goal.seq == out.goal_seq:
             pub_path.put(path_message(out.path, clock.now()))
 
-    map_asked_at = -math.inf
-    map_task: asyncio.Task | None = None
-
-    async def fetch_map() -> None:
-        try:
-            grid = await node.query("map", m.Empty(), timeout_s=2.0)
-        except QueryError as exc:
-            log.info("no map yet: %s", exc)
-            return
-        if not nav.has_map:
-            on_map(grid)
-
     while not ctx.stop.is_set():
         now = clock.now()
-        # the latched map may have been published before we subscribed: ask for it until we have one
-        if not nav.has_map and loop.time() - map_asked_at > 3.0 and (map_task is None or map_task.done()):
-            map_asked_at = loop.time()  # wall time: this is about link timing, not robot timing
-            map_task = node.spawn(fetch_map())
         pose = tracker.current()
         if pose is not None and nav.has_map:
             if now >= next_local:
@@ -292,11 +349,24 @@ async def run(ctx: ServiceContext) -> None:
                 pub_costmap.put(costmap_message(nav, now))
                 next_costmap_pub = now + 1.0 / cfg.global_costmap.publish_frequency_hz
         active = nav.goal is not None and nav.state not in TERMINAL and nav.state != "idle"
+        untrusted = tracker.loc_state != "tracking"
+        if active and untrusted:
+            if untrusted_since is None:
+                untrusted_since = now
+                log.warning("localization %s (%s): holding goal %s", tracker.loc_state, tracker.loc_detail,
+                            nav.goal.id if nav.goal else "")
+            elif now - untrusted_since > cfg.localization_lost_timeout_s:
+                nav.fail(now, f"localization {tracker.loc_state} for {now - untrusted_since:.0f} s "
+                              f"({tracker.loc_detail})")
+                active = False
+        elif not untrusted and untrusted_since is not None:
+            log.info("localization tracking again: resuming")
+            untrusted_since = None
         if active and pose is not None:
             stale = now - tracker.last_update() > cfg.pose_timeout_s
-            if (plan_task is None or plan_task.done()) and nav.plan_due(now):
-                plan_task = node.spawn(plan_job(nav.make_request(pose)))
-            if stale:
+            if not untrusted and (plan_task is None or plan_task.done()) and nav.plan_due(now):
+                plan_task = node.spawn(plan_job(nav.make_request(pose, now)))
+            if stale or untrusted:
                 vx, vy, wz = 0.0, 0.0, 0.0
                 nav.cmd = (0.0, 0.0, 0.0)
             else:

@@ -98,6 +98,7 @@ async def run(ctx: ServiceContext) -> None:
             subs.append(node.session.liveliness().declare_subscriber(node.keys.health_all, on_health))
     node.queryable("recorder/save", on_save)
     node.extra_stats.update(blackbox_dir=str(folder), window_s=cfg.window_s)
+    node.ready("subscribed to every topic; recorder/save answered" if cfg.blackbox else "black box off")
 
     async def report() -> None:
         while True:

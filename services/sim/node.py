@@ -293,6 +293,7 @@ async def run(ctx: ServiceContext) -> None:
             node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
             lidar = None
 
+    node.ready("world loaded, CAN bus and LMS111 emulation up")
     clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
     truth_every = max(1, round(1.0 / cfg.ground_truth_hz / cfg.step_s))
     imu_every = max(1, round(1.0 / cfg.imu_rate_hz / cfg.step_s))

@@ -3,8 +3,10 @@
 A world is an axis-aligned raster of ``resolution_m`` cells covering ``extent`` = [x_min, y_min, x_max, y_max]
 (map frame, m). Cell (row r, column c) covers x in [x_min + c*res, x_min + (c+1)*res) and likewise y; row 0 is at
 y_min. Cells are solid or free. Built-in worlds (``services/sim/worlds/<name>.toml``) are solid everywhere except
-their ``free`` rectangles, with ``obstacles`` rectangles made solid again; any ROS map YAML can be loaded instead
-(occupied and unknown cells are solid). Everything outside the extent is solid.
+their ``free`` rectangles, with ``obstacles`` rectangles made solid again and ``glass`` rectangles solid but
+transparent to the lidar (the robot collides with them, the beams pass; the rendered map shows them, as a building
+plan would); any ROS map YAML can be loaded instead (occupied and unknown cells are solid; a yawed origin is
+resampled onto an axis-aligned raster). Everything outside the extent is solid.
 
 Dynamic obstacles are rectangles outside the raster (so adding one costs nothing): ray casting and collision test
 them analytically. They appear and vanish on a schedule (sim time) or on request.
@@ -28,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+
+from services.common.grid import axis_aligned
 
 SQRT2 = math.sqrt(2.0)
 
@@ -64,6 +68,8 @@ class World:
     start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     goals: list[Goal] = field(default_factory=list)
     dynamic: dict[str, DynamicObstacle] = field(default_factory=dict)
+    #: solid cells the lidar sees through (glass walls and doors): they stop the robot, not the beams
+    glass: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.resolution_m <= 0 or not math.isfinite(self.resolution_m):
@@ -77,9 +83,16 @@ class World:
         padded[1:-1, 1:-1] = self.solid
         self._cols_p = cols + 2
         self._rows_p = rows + 2
-        self._solid_flat = padded.ravel()
         edt = ndimage.distance_transform_edt(~padded).astype(np.float32)  # cells, centre to nearest solid centre
         self._edt_flat = edt.ravel()
+        # ray casting sees the opaque cells only
+        if self.glass is not None:
+            if self.glass.shape != self.solid.shape:
+                raise WorldError(f"world {self.name}: glass mask {self.glass.shape} != raster {self.solid.shape}")
+            self.glass = np.ascontiguousarray(self.glass, dtype=bool) & self.solid
+            padded[1:-1, 1:-1] &= ~self.glass
+            edt = ndimage.distance_transform_edt(~padded).astype(np.float32)
+        self._solid_flat = padded.ravel()
         # free cells: the clearance in cells (>= 0); solid cells: -1, so one lookup tells both
         self._clear_flat = np.where(padded, -1.0, np.maximum(edt - SQRT2, 0.0)).astype(np.float64).ravel()
         self._runs_flat = _free_run_table(padded)
@@ -287,7 +300,7 @@ class World:
 
     @classmethod
     def from_rectangles(cls, name: str, resolution_m: float, extent: list[float], free: list[list[float]],
-                        obstacles: list[list[float]], **kwargs) -> World:  # noqa: ANN003
+                        obstacles: list[list[float]], glass: list[list[float]] | None = None, **kwargs) -> World:  # noqa: ANN003
         x0, y0, x1, y1 = _check_rect(extent, "extent")
         cols = int(round((x1 - x0) / resolution_m))
         rows = int(round((y1 - y0) / resolution_m))
@@ -305,7 +318,13 @@ class World:
             solid[mask(r)] = False
         for r in obstacles:
             solid[mask(r)] = True
-        return cls(name=name, resolution_m=resolution_m, origin_xy=(x0, y0), solid=solid, **kwargs)
+        glass_mask = None
+        if glass:
+            glass_mask = np.zeros_like(solid)
+            for r in glass:
+                glass_mask[mask(r)] = True
+            solid |= glass_mask
+        return cls(name=name, resolution_m=resolution_m, origin_xy=(x0, y0), solid=solid, glass=glass_mask, **kwargs)
 
     @classmethod
     def load_toml(cls, path: str | Path) -> World:
@@ -328,7 +347,8 @@ class World:
                                                appear_at_s=d.get("appear_at_s"), vanish_at_s=d.get("vanish_at_s"))
             return cls.from_rectangles(
                 str(data["name"]), float(data["resolution_m"]), data["extent_m"], data.get("free", []),
-                data.get("obstacles", []), start_pose=tuple(map(float, data.get("start_pose", (0.0, 0.0, 0.0)))),
+                data.get("obstacles", []), data.get("glass", []),
+                start_pose=tuple(map(float, data.get("start_pose", (0.0, 0.0, 0.0)))),
                 goals=goals, dynamic=dynamic)
         except KeyError as exc:
             raise WorldError(f"{source}: missing key {exc}") from None
@@ -349,8 +369,8 @@ class World:
 
         Honours ``negate``, ``occupied_thresh``/``free_thresh`` and ``mode`` (trinary/scale: a cell is free when
         its occupancy probability p = (255 - v)/255 (negate: v/255) is below ``free_thresh``; raw: v < 1 ... v is
-        the occupancy 0..100 and free when < free_thresh*100). ``origin`` yaw must be 0 (the raster is axis
-        aligned).
+        the occupancy 0..100 and free when < free_thresh*100). A yawed ``origin`` is resampled onto the axis-aligned
+        raster that covers the rotated map (services.common.grid).
         """
         import yaml
         from PIL import Image
@@ -371,15 +391,16 @@ class World:
             raise WorldError(f"map {path}: {type(exc).__name__}: {exc}") from None
         if len(origin) < 2:
             raise WorldError(f"map {path}: origin must be [x, y, yaw]")
-        if len(origin) > 2 and abs(origin[2]) > 1e-9:
-            raise WorldError(f"map {path}: origin yaw {origin[2]} is not supported by the simulator (must be 0)")
         if mode == "raw":
             free = img < free_thresh * 100.0
         else:
             p = img / 255.0 if negate else (255.0 - img) / 255.0
             free = p < free_thresh
         solid = ~free[::-1]  # image row 0 is the top (max y)
-        return cls(name=path.stem, resolution_m=resolution, origin_xy=(origin[0], origin[1]), solid=solid)
+        # a yawed origin: the raster is resampled onto the axis-aligned raster covering it (outside: solid)
+        solid, x0, y0 = axis_aligned(solid, resolution, (origin[0], origin[1], origin[2] if len(origin) > 2 else 0.0),
+                                     fill=True)
+        return cls(name=path.stem, resolution_m=resolution, origin_xy=(x0, y0), solid=solid)
 
 
 def builtin_worlds() -> list[str]:

@@ -272,6 +272,7 @@ async def run(ctx: ServiceContext) -> None:
 
     tasks = [node.spawn(carry_out()), node.spawn(state_reporter()), node.spawn(mqtt_session()),
              node.spawn(fetch_map())]
+    node.ready("Zenoh subscriptions declared; the MQTT session reports its own link")
     try:
         await ctx.stop.wait()
     finally:

@@ -189,6 +189,16 @@ def test_sigkill_during_goal_never_drives_blind(nav: Navigator, service: str, fa
 
     stack.wait_line(rf"^zagv: {service} healthy again", timeout_s=60, after=mark)
     fault_figures(f"{service}_killed_during_goal_to_healthy_wall", time.monotonic() - killed)
+    if service == "drive":
+        # a restarted drive comes back disabled: nav's commands must not move the robot until an explicit enable
+        with n.lock:
+            back_sim = n.truth.stamp
+            first_back = len(n.truth_log)
+        n.wait_sim(back_sim + 2.0)
+        with n.lock:
+            moved = [g.stamp for g in n.truth_log[first_back:] if math.hypot(g.twist.vx, g.twist.vy) > 0.01]
+        assert not moved, f"the restarted drive moved the robot at sim {moved[0]:.2f} s without an enable"
+        assert n.query("drive/enable", Empty(), Reply).ok
 
     def settled() -> str:
         st = n.status

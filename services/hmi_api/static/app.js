@@ -195,7 +195,8 @@ function renderStatus(s) {
   const o = s.odom;
   $("#st-odom").textContent = o ? `x ${fmt(o.x)} y ${fmt(o.y)} θ ${deg(o.theta)} | v ${fmt(o.vx)} ${fmt(o.vy)} ${fmt(o.wz)}` : "–";
   const p = s.pose;
-  $("#st-pose").textContent = p ? `${p.frame} x ${fmt(p.x)} y ${fmt(p.y)} θ ${deg(p.theta)}` : "–";
+  const verdict = p && p.localization && p.localization !== "tracking" ? ` (${p.localization})` : "";
+  $("#st-pose").textContent = p ? `${p.frame} x ${fmt(p.x)} y ${fmt(p.y)} θ ${deg(p.theta)}${verdict}` : "–";
   const w = s.wheels;
   $("#st-modules").textContent = w && w.modules.length
     ? w.modules.map((m, i) => `M${i + 1} ${deg(m.steer_rad)} ${fmt(m.speed_mps)} m/s`).join(" · ") : "–";
@@ -210,6 +211,16 @@ function renderStatus(s) {
   else chip("#chip-drive", w.enabled ? "drive enabled" : "drive disabled", w.enabled ? "good" : "");
   const busy = n && ["planning", "driving", "rotating", "recovering"].includes(n.state);
   chip("#chip-nav", n ? `nav ${n.state}${stale.includes("nav") ? " (silent)" : ""}` : "nav: no data", !n ? "warn" : n.state === "failed" ? "bad" : busy ? "good" : "");
+  const sf = s.safety;
+  $("#st-safety").textContent = sf ? `${sf.action}${sf.action !== "clear" ? ` — ${sf.reason}` : ""} (${sf.interventions} interventions)` : "–";
+  if (!sf) chip("#chip-safety", "safety: no data", "warn");
+  else if (sf.action === "stop" || sf.action === "no_scan") chip("#chip-safety", `SAFETY STOP: ${sf.reason}`, "bad");
+  else if (sf.action !== "clear") chip("#chip-safety", `safety ${sf.action} ×${fmt(sf.scale)}`, "warn");
+  else chip("#chip-safety", "safety clear", "good");
+  const loc = s.localization;
+  if (!loc) chip("#chip-loc", "localization: no data", "warn");
+  else chip("#chip-loc", `localization ${loc.state} (match ${fmt(loc.match_score)}, spread ${fmt(loc.spread_m)} m)`,
+    loc.state === "tracking" ? "good" : loc.state === "lost" ? "bad" : "warn");
   for (const tr of $$("#pose-table tbody tr")) {
     tr.classList.toggle("active", !!(n && busy && n.goal_id && n.goal_id.startsWith(`pose${tr.dataset.id}-`)));
   }
@@ -291,7 +302,7 @@ $("#btn-map-save").addEventListener("click", async () => {
   if (r) lastSavedMap = name;
 });
 $("#btn-map-navigate").addEventListener("click", () => {
-  const map = prompt("Navigate on which saved map (name or YAML path; empty: the last saved)?", lastSavedMap);
+  const map = prompt("Navigate on which saved map (its name; empty: the last saved)?", lastSavedMap);
   if (map === null) return;
   act("navigate on map", () => api("POST", "/api/mapping/stop", { map }));
 });

@@ -4,6 +4,10 @@ For each ground-truth relation δ*_ij (the pose of scan j seen from scan i) and 
 δ_ij = x_i⁻¹ ⊕ x_j, the error is ε = δ*_ij⁻¹ ⊕ δ_ij; the translational error is ‖ε_xy‖ (m) and the rotational
 error |ε_θ| (rad). Reported: mean and standard deviation of both over all relations. The relations relate
 *scans*, i.e. poses of the laser: a robot trajectory is first moved to the laser frame (``scan_poses``).
+
+Against a reference trajectory (a SLAM-corrected log): ``aligned_trajectory_error`` is the RMS position error
+after the rigid SE(2) alignment minimising it (Umeyama 1991 without scale), and ``false_closures`` lists the loop
+closures whose measured relative pose disagrees with the reference's relative pose of the same two scans.
 """
 
 from __future__ import annotations
@@ -90,3 +94,52 @@ def relative_pose_error(stamps_s: np.ndarray, poses: np.ndarray, relations: Rela
     rot = np.abs(wrap_angle(error[:, 2]))
     return RelativePoseError(float(trans.mean()), float(trans.std()), float(rot.mean()), float(rot.std()),
                              float(trans.max()), int(ok.sum()), int((~ok).sum()))
+
+
+@dataclass
+class TrajectoryError:
+    rms_m: float
+    max_m: float
+    rotation_rms_rad: float
+    n_poses: int
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def align_se2(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The transform T (x, y, theta) minimising Σ‖T ⊕ p_i − r_i‖² over positions (Umeyama, no scale)."""
+    p = np.asarray(poses, float)[:, :2]
+    r = np.asarray(reference, float)[:, :2]
+    mp, mr = p.mean(axis=0), r.mean(axis=0)
+    cov = (r - mr).T @ (p - mp)
+    theta = float(np.arctan2(cov[1, 0] - cov[0, 1], cov[0, 0] + cov[1, 1]))
+    c, s = np.cos(theta), np.sin(theta)
+    t = mr - np.array([[c, -s], [s, c]]) @ mp
+    return np.array([t[0], t[1], theta])
+
+
+def aligned_trajectory_error(poses: np.ndarray, reference: np.ndarray) -> TrajectoryError:
+    """RMS / max position error and RMS heading error of ``poses`` (N, 3) against ``reference`` (N, 3) after
+    ``align_se2``."""
+    poses = np.asarray(poses, float)
+    reference = np.asarray(reference, float)
+    if poses.shape != reference.shape or len(poses) < 2:
+        raise ValueError(f"trajectories must have the same length >= 2 (got {poses.shape} and {reference.shape})")
+    aligned = compose(np.broadcast_to(align_se2(poses, reference), poses.shape), poses)
+    d = np.hypot(*(aligned[:, :2] - reference[:, :2]).T)
+    rot = wrap_angle(aligned[:, 2] - reference[:, 2])
+    return TrajectoryError(float(np.sqrt(np.mean(d**2))), float(d.max()), float(np.sqrt(np.mean(rot**2))),
+                           len(poses))
+
+
+def false_closures(from_scans: np.ndarray, to_scans: np.ndarray, measurements: np.ndarray, reference: np.ndarray, *,
+                   max_xy_m: float = 0.3, max_theta_rad: float = 0.05) -> np.ndarray:
+    """Mask of closures (scan ``to`` seen from scan ``from`` = ``measurements`` (M, 3)) that differ from the
+    reference trajectory's ``between(reference[from], reference[to])`` by more than ``max_xy_m`` or
+    ``max_theta_rad``."""
+    if len(from_scans) == 0:
+        return np.zeros(0, bool)
+    truth = between(reference[np.asarray(from_scans)], reference[np.asarray(to_scans)])
+    error = between(truth, np.asarray(measurements, float).reshape(-1, 3))
+    return (np.hypot(error[:, 0], error[:, 1]) > max_xy_m) | (np.abs(wrap_angle(error[:, 2])) > max_theta_rad)

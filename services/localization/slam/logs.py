@@ -1,11 +1,15 @@
 """Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs and ROS 1 ``.bag`` files.
 
 CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
-(beams spread evenly over 180°, starting at -90°) and ``ROBOTLASER1 type start_angle fov resolution max_range
+(beams spread evenly over 180°, starting at -90°; the laser sits ``PARAM robot_frontlaser_offset`` m ahead of the
+robot, 0 when absent) and ``ROBOTLASER1 type start_angle fov resolution max_range
 accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
-tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp``; the stamp is the IPC
-timestamp. Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or
-``/tf`` odom→base), interpolated at each scan stamp, and the laser mount from ``/tf_static``.
+tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp`` (the mount is
+``robot_pose⁻¹ ⊕ laser_pose``); the stamp is the IPC timestamp. CARMEN records stay in file order (the logger
+writes them in time order); a log whose stamps do not increase strictly (some published logs carry truncated or
+zero stamps) gets its scan index as stamp and ``stamps_from_log = False``.
+Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or ``/tf`` odom→base),
+interpolated at each scan stamp, and the laser mount from ``/tf_static``.
 """
 
 from __future__ import annotations
@@ -16,9 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .se2 import interpolate, wrap_angle
+from .se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
+#: a laser further than this from the robot frame is a malformed record, not a mount
+MAX_MOUNT_OFFSET_M = 2.0
 
 
 @dataclass
@@ -39,6 +45,7 @@ class LaserLog:
 
     scans: list[LaserScanRecord]
     sensor_pose: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    stamps_from_log: bool = True
 
     @property
     def duration_s(self) -> float:
@@ -48,12 +55,16 @@ class LaserLog:
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
     """Scans of the FLASER / ROBOTLASER1 lines of a CARMEN log (other lines are ignored)."""
     scans: list[LaserScanRecord] = []
+    front_offset_m = 0.0
+    mounts: list[np.ndarray] = []
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields:
             continue
         try:
-            if fields[0] == "FLASER":
+            if fields[0] == "PARAM" and len(fields) > 2 and fields[1] == "robot_frontlaser_offset":
+                front_offset_m = float(fields[2])
+            elif fields[0] == "FLASER":
                 n = int(fields[1])
                 ranges = np.array(fields[2:2 + n], float)
                 rest = fields[2 + n:]
@@ -67,14 +78,37 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 ranges = np.array(fields[9:9 + n], float)
                 n_rem = int(fields[9 + n])
                 rest = fields[10 + n + n_rem:]
+                laser = np.array(rest[0:3], float)
                 odom = np.array(rest[3:6], float)
                 stamp = float(rest[11])
                 angles = start + np.arange(n) * (fov / max(n - 1, 1))
                 scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+                mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
-    scans.sort(key=lambda s: s.stamp_s)
-    return LaserLog(scans)
+    sensor_pose = np.array([front_offset_m, 0.0, 0.0])
+    if mounts:
+        mount = np.median(np.array(mounts), axis=0)
+        if np.hypot(mount[0], mount[1]) > MAX_MOUNT_OFFSET_M:
+            raise ValueError(f"CARMEN ROBOTLASER1 laser pose is {np.hypot(mount[0], mount[1]):.1f} m from the robot "
+                             f"pose: not a mount offset (more than {MAX_MOUNT_OFFSET_M} m)")
+        sensor_pose = mount
+    stamps = np.array([s.stamp_s for s in scans])
+    from_log = bool(len(stamps) < 2 or np.all(np.diff(stamps) > 0))
+    if not from_log:
+        for k, scan in enumerate(scans):
+            scan.stamp_s = float(k)
+    return LaserLog(scans, sensor_pose, from_log)
+
+
+def with_mount(log: LaserLog, sensor_pose: np.ndarray) -> LaserLog:
+    """The same log re-expressed for a laser mounted at ``sensor_pose``: every odometry pose x becomes
+    x ⊕ s ⊕ s'⁻¹ so that the laser poses (x ⊕ s) and the scans are unchanged; only the robot frame moves."""
+    sensor_pose = np.asarray(sensor_pose, float)
+    shift = compose(log.sensor_pose, inverse(sensor_pose))
+    scans = [LaserScanRecord(s.stamp_s, s.ranges_m, s.angles_rad, compose(s.odom_pose, shift), s.min_range_m,
+                             s.max_range_m) for s in log.scans]
+    return LaserLog(scans, sensor_pose.copy(), log.stamps_from_log)
 
 
 def _yaw(q) -> float:
@@ -83,6 +117,21 @@ def _yaw(q) -> float:
 
 def _stamp(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+def mount_from_transforms(laser_frame: str, fixed: dict[str, tuple[str, np.ndarray]],
+                          base_frame: str | None) -> np.ndarray:
+    """Laser pose (x, y, theta) in the robot's base frame: the fixed transforms (child -> (parent, pose)) composed
+    from ``laser_frame`` up to ``base_frame`` (or to the top of the chain when the base frame is not on it)."""
+    pose = np.zeros(3)
+    frame = laser_frame
+    seen = set()
+    while frame != base_frame and frame in fixed and frame not in seen:
+        seen.add(frame)
+        parent, step = fixed[frame]
+        pose = compose(step, pose)
+        frame = parent
+    return pose
 
 
 def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None = None) -> LaserLog:
@@ -103,22 +152,32 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
         odom_poses: list[tuple[float, float, float]] = []
         tf_odom: list[tuple[float, float, float, float]] = []
         static: dict[str, tuple[str, np.ndarray]] = {}
+        dynamic: dict[str, tuple[str, np.ndarray]] = {}
+        base_frames: list[str] = []
         for conn, _, raw in reader.messages(connections=scan_conns + odom_conns + tf_conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn in scan_conns:
                 raw_scans.append(msg)
             elif conn in odom_conns:
                 p = msg.pose.pose
+                if not base_frames and msg.child_frame_id:
+                    base_frames.append(msg.child_frame_id.lstrip("/"))
                 odom_stamps.append(_stamp(msg.header))
                 odom_poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
             else:
                 for tf in msg.transforms:
                     t = tf.transform.translation
                     pose = np.array([t.x, t.y, _yaw(tf.transform.rotation)])
+                    child, parent = tf.child_frame_id.lstrip("/"), tf.header.frame_id.lstrip("/")
                     if conn.topic == "/tf_static":
-                        static[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id.lstrip("/"), pose)
-                    elif not odom_conns and tf.header.frame_id.lstrip("/") == "odom":
-                        tf_odom.append((_stamp(tf.header), *pose))
+                        static[child] = (parent, pose)
+                    elif parent == "odom":
+                        if not odom_conns:
+                            tf_odom.append((_stamp(tf.header), *pose))
+                            if not base_frames:
+                                base_frames.append(child)
+                    elif child not in dynamic:
+                        dynamic[child] = (parent, pose)  # a mount some bags publish on /tf instead of /tf_static
     if not odom_stamps:
         if not tf_odom:
             raise ValueError(f"{path}: no nav_msgs/Odometry topic and no odom transform in /tf")
@@ -130,7 +189,7 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
     o_stamps = o_stamps[order]
     o_poses = np.asarray(odom_poses, float)[order]
     laser_frame = raw_scans[0].header.frame_id.lstrip("/") if raw_scans else ""
-    sensor_pose = static[laser_frame][1] if laser_frame in static else np.zeros(3)
+    sensor_pose = mount_from_transforms(laser_frame, {**dynamic, **static}, base_frames[0] if base_frames else None)
     scans = []
     for msg in raw_scans:
         stamp = _stamp(msg.header)

@@ -1,13 +1,31 @@
 """Graph SLAM front- and back-end: feed scans with odometry, get the optimised trajectory and map.
 
-Every scan is matched against a local submap built from the last keyframes (``matcher.refine`` on a
-multi-resolution likelihood grid, with the odometry prediction as a prior; a correlative search rescues
-poor matches and fast turns). A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous
-keyframe by the matched relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back
-along the path); it is matched against that keyframe's neighbourhood (refinement from the current estimate,
-then a wide correlative search if that fails) and the match is accepted as a loop constraint only when its
-score is high and the scan fixes both translation directions. The graph is re-optimised after loop closures.
-Non-keyframe scans are stored relative to their keyframe so the whole trajectory follows the optimisation.
+Front end: every scan is matched against a local submap built from the last keyframes (``matcher.refine`` on a
+multi-resolution likelihood grid, with the odometry prediction as a prior). A poor match or a fast turn triggers a
+correlative search over a window scaled to the odometry increment (x, y: ``rescue_window_xy_m +
+rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad + 0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``; its candidates
+are refined under an odometry prior of spread σ = σ₀ + k·‖Δt‖), so a wheel slip or an odometry jump is searched
+for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: below
+``weak_match_score`` the pose falls back to the odometry prediction, and in both cases the keyframe edge gets the
+odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad +
+odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a scan match's, so the back end knows that
+stretch is only dead-reckoned.
+
+A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous keyframe by the matched
+relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path); it is matched
+against that keyframe's neighbourhood (refinement from the current estimate, then a wide correlative search if that
+fails) and the match becomes a loop-closure *candidate* only when its score is high and the scan fixes both
+translation directions.
+
+Back end: a candidate that agrees with the graph (its correction is below ``loop_trusted_xy_m`` /
+``loop_trusted_theta_rad``) is accepted at once. One that would bend the graph further is held pending until another
+candidate within ``loop_consistency_keyframes`` keyframes agrees with it: the cycle z_a ⊕ T(a.to → b.to) ⊕ z_b⁻¹ ⊕
+T(b.from → a.from), with T the current graph's relative poses, must be near identity (tolerance growing with the
+path lengths inside the cycle; Olson 2009's pairwise consistency). A pending candidate that nobody confirms in time
+is rejected. After every optimisation, accepted closures whose residual χ² = eᵀΩe exceeds ``loop_max_chi2`` are
+switched off and the graph re-optimised (they contradict the rest of the graph). ``loop_closures`` lists the
+accepted closures, ``rejected_closures`` the rejected ones. Non-keyframe scans are stored relative to their keyframe
+so the whole trajectory follows the optimisation.
 """
 
 from __future__ import annotations
@@ -21,7 +39,7 @@ from .likelihood import MultiResolutionGrid
 from .matcher import MatchResult, correlative_search, refine, translation_sharpness
 from .occupancy import OccupancyGrid
 from .pose_graph import PoseGraph
-from .se2 import between, compose, transform_points, wrap_angle
+from .se2 import between, compose, inverse, transform_points, wrap_angle
 
 
 class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -36,16 +54,33 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     keyframe_angle_rad: float = 0.2
     submap_keyframes: int = 20
     min_match_score: float = 0.35
+    weak_match_score: float = 0.175
     odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
-    rescue_window_xy_m: float = 0.4
+    rescue_below_score: float = 0.35
+    rescue_window_xy_m: float = 0.3
+    rescue_window_per_m: float = 0.15
     rescue_window_theta_rad: float = 0.25
+    rescue_theta_per_m: float = 0.05
     fast_turn_rad: float = 0.15
+    odom_prior_sigma_xy_per_m: float = 0.1
+    odom_prior_sigma_theta_per_m: float = 0.05
+    fallback_sigma_xy_m: float = 0.1
+    fallback_sigma_theta_rad: float = 0.05
+    odom_sigma_xy_per_m: float = 0.1
+    odom_sigma_theta_per_m: float = 0.05
     sequential_sigma_xy_m: float = 0.02
     sequential_sigma_theta_rad: float = 0.005
     loop_sigma_xy_m: float = 0.03
     loop_sigma_theta_rad: float = 0.01
     loop_robust_scale: float = 10.0
+    loop_trusted_xy_m: float = 0.3
+    loop_trusted_theta_rad: float = 0.05
+    loop_consistency_keyframes: int = 30
+    loop_consistency_xy_m: float = 0.3
+    loop_consistency_theta_rad: float = 0.05
+    loop_consistency_per_m: float = 0.01
+    loop_max_chi2: float = 50.0
     loop_search_radius_m: float = 4.0
     loop_min_travel_m: float = 8.0
     loop_neighbour_keyframes: int = 12
@@ -64,6 +99,20 @@ class _ScanRecord:
     stamp_s: float
     keyframe: int
     relative_pose: np.ndarray
+
+
+@dataclass
+class LoopClosure:
+    """A loop-closure candidate: keyframe ``to`` seen from keyframe ``from_`` (``measurement``), the correction it
+    asked of the graph when found (m + rad), and its state: pending, accepted or rejected (with the reason)."""
+
+    from_: int
+    to: int
+    measurement: np.ndarray
+    correction: float
+    edge: int = -1
+    state: str = "pending"
+    reason: str = ""
 
 
 @dataclass
@@ -103,26 +152,42 @@ class GraphSlam:
         self.config = config or SlamConfig()
         self.graph = PoseGraph()
         self._keyframes: list[_Keyframe] = []
+        self._keyframe_scans: list[int] = []
         self._scans: list[_ScanRecord] = []
         self._last_odom: np.ndarray | None = None
         self._submap: MultiResolutionGrid | None = None
         self._loop_grids: dict[int, MultiResolutionGrid] = {}
         self._loops_since_optimize = 0
+        self._correction_since_optimize = 0.0
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
-        self.loop_closures: list[tuple[int, int, float]] = []
+        self.closures: list[LoopClosure] = []
         self.loop_checks = 0
         self.rescued_matches = 0
+        self.fallback_matches = 0
         self.weak_matches = 0
+        self.last_match_ok = True
+        self._unmatched_m = 0.0
+        self._unmatched_rad = 0.0
         c = self.config
         self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
                                     1 / c.odom_prior_sigma_theta_rad**2])
         self._sequential_info = np.diag([1 / c.sequential_sigma_xy_m**2, 1 / c.sequential_sigma_xy_m**2,
                                          1 / c.sequential_sigma_theta_rad**2])
+        self._last_covariance = np.linalg.inv(self._sequential_info)
         self._loop_info = np.diag([1 / c.loop_sigma_xy_m**2, 1 / c.loop_sigma_xy_m**2,
                                    1 / c.loop_sigma_theta_rad**2])
 
     # ----------------------------------------------------------------------------------------------- state
+    @property
+    def loop_closures(self) -> list[LoopClosure]:
+        """Accepted loop closures."""
+        return [c for c in self.closures if c.state == "accepted"]
+
+    @property
+    def rejected_closures(self) -> list[LoopClosure]:
+        return [c for c in self.closures if c.state == "rejected"]
+
     @property
     def n_scans(self) -> int:
         return len(self._scans)
@@ -130,6 +195,10 @@ class GraphSlam:
     @property
     def n_keyframes(self) -> int:
         return len(self._keyframes)
+
+    def keyframe_scan_indices(self) -> np.ndarray:
+        """Index (in input order) of the scan each keyframe was made from."""
+        return np.asarray(self._keyframe_scans, dtype=np.intp)
 
     def _scan_pose(self, record: _ScanRecord) -> np.ndarray:
         return compose(self.graph.pose(record.keyframe), record.relative_pose)
@@ -159,36 +228,68 @@ class GraphSlam:
         cloud = cloud[near] if near.sum() > 10 else cloud
         self._submap = MultiResolutionGrid.from_points(cloud, c.resolution_m, c.levels)
 
-    def _match_local(self, points: np.ndarray, predicted: np.ndarray, turn_rad: float) -> np.ndarray:
+    def _motion_prior(self, step: np.ndarray) -> np.ndarray:
+        """Information of the odometry prediction for an increment ``step``: σ = σ₀ + k·‖Δt‖."""
+        c = self.config
+        dist = float(np.hypot(step[0], step[1]))
+        sxy = c.odom_prior_sigma_xy_m + c.odom_prior_sigma_xy_per_m * dist
+        sth = c.odom_prior_sigma_theta_rad + c.odom_prior_sigma_theta_per_m * dist
+        return np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
+
+    def _match_local(self, points: np.ndarray, predicted: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Matched pose and whether it passed the quality gate (else the odometry prediction is returned)."""
         c = self.config
         if self._submap is None:
             self._rebuild_submap(predicted)
         assert self._submap is not None
+        turn_rad = float(wrap_angle(step[2]))
+        dist = float(np.hypot(step[0], step[1]))
         result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
-        if result.score >= c.min_match_score and abs(turn_rad) < c.fast_turn_rad:
-            return result.pose
-        # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search rotations widely
-        window = c.rescue_window_theta_rad + 0.5 * abs(turn_rad)
+        if result.score >= max(c.min_match_score, c.rescue_below_score) and abs(turn_rad) < c.fast_turn_rad:
+            return result.pose, True
+        # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search a window scaled to
+        # the odometry increment; candidates are refined with a prior whose spread grows with the increment, so
+        # a large (possibly wrong) odometry step cannot pull the match back
+        window_theta = c.rescue_window_theta_rad + 0.5 * abs(turn_rad) + c.rescue_theta_per_m * dist
+        window_xy = c.rescue_window_xy_m + c.rescue_window_per_m * dist
         candidates = correlative_search(self._submap.levels[-1], points, predicted,
-                                        window_xy_m=c.rescue_window_xy_m, window_theta_rad=window,
+                                        window_xy_m=window_xy, window_theta_rad=window_theta,
                                         theta_step_rad=0.02, n_best=3)
         best = result
         for _, pose in candidates:
-            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._odom_prior)
+            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step))
             if trial.score > best.score + 0.02:
                 best = trial
         if best.score >= c.min_match_score:
             if best is not result:
                 self.rescued_matches += 1
-            return best.pose
-        self.weak_matches += 1
-        return predicted if best.score < 0.5 * c.min_match_score else best.pose
+            return best.pose, True
+        if best.score >= c.weak_match_score:  # weak but usable: kept, with the odometry's covariance
+            self.weak_matches += 1
+            return best.pose, False
+        self.fallback_matches += 1
+        return predicted, False
+
+    def _sequential_information(self) -> np.ndarray:
+        """Scan-match information, or the odometry's when part of the edge was dead-reckoned (quality gate)."""
+        c = self.config
+        if self._unmatched_m == 0.0 and self._unmatched_rad == 0.0:
+            return self._sequential_info
+        sxy = c.fallback_sigma_xy_m + c.odom_sigma_xy_per_m * self._unmatched_m
+        sth = c.fallback_sigma_theta_rad + c.odom_sigma_theta_per_m * self._unmatched_m + 0.05 * self._unmatched_rad
+        return np.diag([1 / sxy**2, 1 / sxy**2, 1 / sth**2])
+
+    def match_covariance(self) -> np.ndarray:
+        """Covariance (3x3) of the latest scan's pose relative to its keyframe: a scan match's, or the odometry's
+        over the dead-reckoned distance when matches failed the quality gate."""
+        return self._last_covariance
 
     # ---------------------------------------------------------------------------------------------- input
     def add_scan(self, stamp_s: float, odom_pose: np.ndarray, points: np.ndarray,
                  sensor_origin_xy_m: np.ndarray | None = None) -> np.ndarray:
         """Process one scan: ``points`` (N, 2) are hits in the robot frame, ``odom_pose`` the robot's odometry
-        pose at the scan's time. Returns the estimated robot pose in the map frame."""
+        pose at the scan's time, ``sensor_origin_xy_m`` the laser's position in the robot frame (beams start
+        there when the map is rendered). Returns the estimated robot pose in the map frame."""
         c = self.config
         odom_pose = np.asarray(odom_pose, float)
         origin = np.zeros(2) if sensor_origin_xy_m is None else np.asarray(sensor_origin_xy_m, float)
@@ -202,19 +303,34 @@ class GraphSlam:
             return pose
         assert self._last_odom is not None
         previous = self.current_pose()
-        predicted = compose(previous, between(self._last_odom, odom_pose))
+        step = between(self._last_odom, odom_pose)
+        predicted = compose(previous, step)
         self._last_odom = odom_pose
-        turn = float(wrap_angle(predicted[2] - previous[2]))
-        pose = self._match_local(match_points, predicted, turn) if len(match_points) >= 20 else predicted
+        if len(match_points) >= 20:
+            pose, ok = self._match_local(match_points, predicted, step)
+        else:
+            pose, ok = predicted, False
+            self.fallback_matches += 1
+        self.last_match_ok = ok
+        if not ok:
+            self._unmatched_m += float(np.hypot(step[0], step[1]))
+            self._unmatched_rad += abs(float(wrap_angle(step[2])))
+        self._last_covariance = np.linalg.inv(self._sequential_information())
         last_kf = self.n_keyframes - 1
         from_kf = between(self.graph.pose(last_kf), pose)
         moved = np.hypot(from_kf[0], from_kf[1])
         if moved >= c.keyframe_distance_m or abs(from_kf[2]) >= c.keyframe_angle_rad:
             travel = self._keyframes[-1].travel_m + moved
+            info = self._sequential_information()
             k = self._add_keyframe(stamp_s, pose, match_points, map_points, origin, travel_m=travel)
-            self.graph.add_edge(last_kf, k, from_kf, self._sequential_info)
+            self.graph.add_edge(last_kf, k, from_kf, info)
+            self._unmatched_m = self._unmatched_rad = 0.0
             self._submap = None
             self._search_loop(k)
+            self._check_pending(k)
+            if self._loops_since_optimize and (self._correction_since_optimize > 0.1 or
+                                               self._loops_since_optimize >= c.optimize_every_loops):
+                self.optimize()
         else:
             self._scans.append(_ScanRecord(stamp_s, last_kf, from_kf))
         return self.current_pose()
@@ -223,6 +339,7 @@ class GraphSlam:
                       origin: np.ndarray, travel_m: float) -> int:
         k = self.graph.add_node(pose)
         self._keyframes.append(_Keyframe(points, map_points, origin, travel_m))
+        self._keyframe_scans.append(len(self._scans))
         self._scans.append(_ScanRecord(stamp_s, k, np.zeros(3)))
         return k
 
@@ -275,13 +392,50 @@ class GraphSlam:
                 result, accepted = best, True
         if not accepted:
             return
-        correction = np.hypot(*(result.pose[:2] - guess[:2])) + abs(wrap_angle(result.pose[2] - guess[2]))
-        self.graph.add_edge(candidate, k, result.pose, self._loop_info, robust_scale=c.loop_robust_scale)
-        self.loop_closures.append((candidate, k, float(correction)))
+        correction = np.hypot(*(result.pose[:2] - guess[:2]))
+        turn = abs(float(wrap_angle(result.pose[2] - guess[2])))
+        closure = LoopClosure(candidate, k, result.pose.copy(), float(correction + turn))
+        self.closures.append(closure)
         self._last_loop_keyframe = k
+        if correction <= c.loop_trusted_xy_m and turn <= c.loop_trusted_theta_rad:
+            self._accept(closure)
+
+    def _accept(self, closure: LoopClosure) -> None:
+        closure.edge = self.graph.add_edge(closure.from_, closure.to, closure.measurement, self._loop_info,
+                                           robust_scale=self.config.loop_robust_scale)
+        closure.state = "accepted"
         self._loops_since_optimize += 1
-        if correction > 0.1 or self._loops_since_optimize >= c.optimize_every_loops:
-            self.optimize()
+        self._correction_since_optimize = max(self._correction_since_optimize, closure.correction)
+
+    def _path_length(self, a: int, b: int) -> float:
+        lo, hi = min(a, b), max(a, b)
+        return abs(self._keyframes[hi].travel_m - self._keyframes[lo].travel_m)
+
+    def _consistent(self, a: LoopClosure, b: LoopClosure, poses: np.ndarray) -> bool:
+        """Cycle a.z ⊕ T(a.to → b.to) ⊕ b.z⁻¹ ⊕ T(b.from → a.from) near identity (T from the graph)."""
+        c = self.config
+        cycle = compose(compose(compose(a.measurement, between(poses[a.to], poses[b.to])), inverse(b.measurement)),
+                        between(poses[b.from_], poses[a.from_]))
+        path = self._path_length(a.to, b.to) + self._path_length(a.from_, b.from_)
+        return bool(np.hypot(cycle[0], cycle[1]) <= c.loop_consistency_xy_m + c.loop_consistency_per_m * path
+                    and abs(float(wrap_angle(cycle[2]))) <= c.loop_consistency_theta_rad
+                    + c.loop_consistency_per_m * path)
+
+    def _check_pending(self, k: int) -> None:
+        """Accept pending candidates confirmed by another candidate; reject those too old to be confirmed."""
+        c = self.config
+        pending = [p for p in self.closures if p.state == "pending"]
+        if not pending:
+            return
+        poses = self.graph.poses()
+        recent = [p for p in self.closures if p.state != "rejected" and k - p.to <= c.loop_consistency_keyframes]
+        confirmed = [p for p in pending
+                     if any(q is not p and self._consistent(p, q, poses) for q in recent)]
+        for p in confirmed:
+            self._accept(p)
+        for p in pending:
+            if p.state == "pending" and k - p.to > c.loop_consistency_keyframes:
+                p.state, p.reason = "rejected", "no consistent closure"
 
     def _loop_ok(self, grid: MultiResolutionGrid, points: np.ndarray, result: MatchResult, guess: np.ndarray) -> bool:
         c = self.config
@@ -297,11 +451,26 @@ class GraphSlam:
         """Re-optimise the pose graph; the local submap is rebuilt from the new poses. Loop grids are kept: they
         hold a keyframe's neighbourhood in that keyframe's frame, which optimisation barely changes."""
         self.graph.optimize(iterations)
+        accepted = self.loop_closures
+        if accepted:
+            chi2 = self.graph.edge_chi2([a.edge for a in accepted])
+            worst = chi2 > self.config.loop_max_chi2
+            if worst.any():
+                for closure in np.array(accepted, dtype=object)[worst]:
+                    closure.state, closure.reason = "rejected", "contradicts the graph"
+                    self.graph.set_active(closure.edge, False)
+                self.graph.optimize(iterations)
         self._loops_since_optimize = 0
+        self._correction_since_optimize = 0.0
         self._submap = None
 
     def finish(self) -> None:
-        """Final optimisation after the last scan."""
+        """Settle pending loop closures (confirmed or rejected) and optimise after the last scan."""
+        if self._keyframes:
+            self._check_pending(self.n_keyframes - 1)
+            for p in self.closures:
+                if p.state == "pending":
+                    p.state, p.reason = "rejected", "no consistent closure"
         self.optimize(30)
 
     # -------------------------------------------------------------------------------------------------- map

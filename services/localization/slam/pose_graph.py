@@ -5,7 +5,8 @@ graph-based SLAM"):  e = t2v(Z⁻¹ (Xᵢ⁻¹ Xⱼ)), i.e.
     e_t = R_zᵀ (R_iᵀ (t_j − t_i) − t_z),   e_θ = wrap(θ_j − θ_i − θ_z)
 with Jacobians A = ∂e/∂x_i = [[−R_zᵀR_iᵀ, R_zᵀ dR_iᵀ/dθ (t_j − t_i)], [0, 0, −1]] and
 B = ∂e/∂x_j = [[R_zᵀR_iᵀ, 0], [0, 0, 1]]. Robust edges are down-weighted by the Cauchy kernel
-w = 1 / (1 + χ²/c²), χ² = eᵀΩe. The first node is held fixed.
+w = 1 / (1 + χ²/c²), χ² = eᵀΩe. An edge can be switched off (a loop closure found false); the optimiser
+ignores it. The first node is held fixed.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ class PoseGraph:
         self._edges_z: list[np.ndarray] = []
         self._edges_info: list[np.ndarray] = []
         self._edges_robust: list[float] = []
+        self._edges_active: list[bool] = []
 
     @property
     def n_nodes(self) -> int:
@@ -50,8 +52,9 @@ class PoseGraph:
         self._poses = [p.copy() for p in np.asarray(poses, float)]
 
     def add_edge(self, i: int, j: int, measurement: np.ndarray, information: np.ndarray, *,
-                 robust_scale: float = 0.0) -> None:
-        """Constraint x_j seen from x_i = ``measurement``; ``robust_scale`` > 0 applies the Cauchy kernel."""
+                 robust_scale: float = 0.0) -> int:
+        """Constraint x_j seen from x_i = ``measurement``; ``robust_scale`` > 0 applies the Cauchy kernel.
+        Returns the edge's index."""
         if not (0 <= i < self.n_nodes and 0 <= j < self.n_nodes) or i == j:
             raise ValueError(f"edge ({i}, {j}) needs two distinct existing nodes (have {self.n_nodes})")
         self._edges_i.append(i)
@@ -59,6 +62,21 @@ class PoseGraph:
         self._edges_z.append(np.asarray(measurement, float).copy())
         self._edges_info.append(np.asarray(information, float).copy())
         self._edges_robust.append(float(robust_scale))
+        self._edges_active.append(True)
+        return self.n_edges - 1
+
+    def set_active(self, edge: int, active: bool) -> None:
+        """Switch edge ``edge`` on or off (an inactive edge does not take part in ``optimize`` or ``chi2``)."""
+        self._edges_active[edge] = bool(active)
+
+    def is_active(self, edge: int) -> bool:
+        return self._edges_active[edge]
+
+    def edge_chi2(self, edges: list[int] | np.ndarray, poses: np.ndarray | None = None) -> np.ndarray:
+        """eᵀΩe of the given edges at ``poses`` (default: current), without robust weighting."""
+        err = self.edge_errors(poses)[np.asarray(edges, dtype=np.intp)]
+        info = np.asarray(self._edges_info).reshape(-1, 3, 3)[np.asarray(edges, dtype=np.intp)]
+        return np.einsum("ni,nij,nj->n", err, info, err)
 
     def edge_errors(self, poses: np.ndarray | None = None) -> np.ndarray:
         """Error vectors e (E, 3) of every edge at ``poses`` (default: current)."""
@@ -103,7 +121,8 @@ class PoseGraph:
         """Σ eᵀΩe over all edges (without robust weighting)."""
         err = self.edge_errors(poses)
         info = np.asarray(self._edges_info).reshape(-1, 3, 3)
-        return float(np.einsum("ni,nij,nj->", err, info, err))
+        active = np.asarray(self._edges_active, bool)
+        return float(np.einsum("ni,nij,nj->", err[active], info[active], err[active]))
 
     def optimize(self, iterations: int = 20, *, tolerance: float = 1e-6, damping: float = 1e-6) -> int:
         """Sparse Gauss-Newton with a small Levenberg damping; returns the number of iterations run."""
@@ -115,6 +134,7 @@ class PoseGraph:
         j = np.asarray(self._edges_j)
         info = np.asarray(self._edges_info).reshape(-1, 3, 3)
         robust = np.asarray(self._edges_robust)
+        info = info * np.asarray(self._edges_active, float)[:, None, None]
         idx3 = np.arange(3)
         done = 0
         for done in range(1, iterations + 1):  # noqa: B007 (returned)

@@ -1,0 +1,234 @@
+"""``zagv map bench FOLDER``: build and evaluate a map from every laser log in a folder, one table row per log.
+
+Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively). Per log and odometry setting:
+- a log with a relations file next to it (``NAME.relations`` for ``NAME.clf`` / ``NAME.orig.bag`` / ``NAME.bag``):
+  the Kümmerle et al. 2009 relative-pose error (translational mean, m; rotational mean, rad) on the laser poses;
+- a log whose name contains ``corrected`` holds a reference trajectory, not odometry: SLAM gets that trajectory
+  corrupted by ``OdometryNoise.for_reference`` (``--odometry clean``) or ``OdometryNoise.degraded``, and the row gives
+  the RMS position error after rigid alignment (``ate_rms_m``) against the reference;
+- the real-time factor (log duration ÷ wall time of SLAM; ``-`` when the log's stamps are unusable) and by CPU time;
+- loop closures accepted / rejected, and ``false``: accepted closures whose measurement disagrees with a reference
+  (the corrected trajectory, or for a relations log under degraded odometry the same log's clean-odometry result)
+  by more than 0.3 m or 0.05 rad.
+``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
+2°/m, jumps; see ``services/localization/slam/odometry_noise.py``); ``both`` runs clean then degraded and adds the
+ratio of the errors. ``--max-scans`` caps every log (a quick slice), ``--only`` keeps logs whose name contains one of
+the given words, ``--json`` writes the rows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+LOG_SUFFIXES = (".clf", ".bag", ".log.gz", ".clf.gz")
+
+
+@dataclass
+class BenchResult:
+    log: str
+    odometry: str
+    scans: int
+    keyframes: int
+    translation_error_m: float | None
+    rotation_error_rad: float | None
+    ate_rms_m: float | None
+    realtime_factor: float | None
+    realtime_factor_cpu: float | None
+    ms_per_scan: float
+    closures_accepted: int
+    closures_rejected: int
+    closures_false: int | None
+    fallback_matches: int
+    odometry_noise: str
+
+
+def find_logs(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name.endswith(LOG_SUFFIXES))
+
+
+def relations_for(log_path: Path) -> Path | None:
+    name = log_path.name
+    for suffix in (".orig.bag", ".bag", ".clf.gz", ".clf"):
+        if name.endswith(suffix):
+            candidate = log_path.with_name(name[: -len(suffix)] + ".relations")
+            return candidate if candidate.is_file() else None
+    return None
+
+
+def has_reference(log_path: Path) -> bool:
+    return "corrected" in log_path.name
+
+
+def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | None = None,
+              reference: np.ndarray | None = None, log=None):
+    """One row for ``log_path`` with ``odometry`` 'clean' or 'degraded'; also returns the laser trajectory
+    (for use as the degraded run's closure reference)."""
+    from services.localization.slam.evaluation import (
+        aligned_trajectory_error,
+        false_closures,
+        parse_relations,
+        relative_pose_error,
+        scan_poses,
+    )
+    from services.localization.slam.logs import read_log
+    from services.localization.slam.odometry_noise import OdometryNoise, corrupt_odometry
+    from services.localization.slam.offline import run_slam
+
+    log = log or read_log(log_path)
+    if max_scans is not None:
+        log.scans = log.scans[:max_scans]
+    truth_scans = None
+    if has_reference(log_path):
+        truth_scans = scan_poses(np.array([s.odom_pose for s in log.scans]), log.sensor_pose)
+        reference = truth_scans
+    noise = None
+    if odometry == "degraded":
+        noise = OdometryNoise.degraded(seed)
+    elif truth_scans is not None:
+        noise = OdometryNoise.for_reference(seed)
+    if noise is not None:
+        log, _ = corrupt_odometry(log, noise)
+    run = run_slam(log)
+    slam = run.slam
+    stamps, poses = slam.trajectory()
+    laser = scan_poses(poses, log.sensor_pose)
+    trans = rot = ate = None
+    relations_path = relations_for(log_path)
+    if relations_path is not None:
+        with relations_path.open() as f:
+            error = relative_pose_error(stamps, laser, parse_relations(f))
+        trans, rot = error.translation_mean_m, error.rotation_mean_rad
+    if truth_scans is not None:
+        ate = aligned_trajectory_error(laser, truth_scans).rms_m
+    accepted = slam.loop_closures
+    n_false = None
+    if reference is not None and len(reference) == len(laser):
+        kf_scan = slam.keyframe_scan_indices()
+        mount = np.broadcast_to(log.sensor_pose, (len(reference), 3))
+        from services.localization.slam.se2 import compose, inverse
+
+        robot_reference = compose(reference, inverse(mount))
+        n_false = int(false_closures(kf_scan[[c.from_ for c in accepted]], kf_scan[[c.to for c in accepted]],
+                                     np.array([c.measurement for c in accepted]).reshape(-1, 3),
+                                     robot_reference).sum())
+    row = BenchResult(
+        log=log_path.name, odometry=odometry, scans=run.n_scans, keyframes=slam.n_keyframes,
+        translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate,
+        realtime_factor=run.realtime_factor if log.stamps_from_log else None,
+        realtime_factor_cpu=run.realtime_factor_cpu if log.stamps_from_log else None,
+        ms_per_scan=1e3 * run.processing_s / max(run.n_scans, 1),
+        closures_accepted=len(accepted), closures_rejected=len(slam.rejected_closures), closures_false=n_false,
+        fallback_matches=slam.fallback_matches, odometry_noise=noise.describe() if noise else "as logged")
+    return row, laser
+
+
+def _fmt(value, spec: str) -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def print_table(rows: list[BenchResult], out=sys.stdout) -> None:
+    header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
+              f"{'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} {'rej':>4s} {'false':>5s} {'fallbk':>6s}")
+    print(header, file=out)
+    for r in rows:
+        print(f"{r.log:34s} {r.odometry:8s} {r.scans:6d} {_fmt(r.translation_error_m, '8.4f')} "
+              f"{_fmt(r.rotation_error_rad, '8.4f')} {_fmt(r.ate_rms_m, '7.3f')} {_fmt(r.realtime_factor, '6.1f')} "
+              f"{_fmt(r.realtime_factor_cpu, '7.1f')} {r.ms_per_scan:7.1f} {r.closures_accepted:5d} "
+              f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d}", file=out)
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    folder = Path(args.folder)
+    if not folder.is_dir():
+        print(f"zagv map bench: {folder} is not a folder", file=sys.stderr)
+        return 2
+    logs = find_logs(folder)
+    if args.only:
+        logs = [p for p in logs if any(word in p.name for word in args.only)]
+    if not logs:
+        print(f"zagv map bench: no .clf, .bag or .log.gz log in {folder}", file=sys.stderr)
+        return 2
+    settings = ["clean", "degraded"] if args.odometry == "both" else [args.odometry]
+    rows: list[BenchResult] = []
+    for path in logs:
+        clean_laser = None
+        for setting in settings:
+            reference = clean_laser if setting == "degraded" else None
+            try:
+                row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference)
+            except (OSError, ValueError) as exc:
+                print(f"zagv map bench: {path.name}: {exc}", file=sys.stderr)
+                continue
+            if setting == "clean":
+                clean_laser = laser
+            rows.append(row)
+            print_table([row], out=sys.stderr)
+    print_table(rows)
+    if args.json:
+        Path(args.json).write_text(json.dumps([asdict(r) for r in rows], indent=2))
+    return 0
+
+
+def add_bench_parser(map_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = map_subparsers.add_parser("bench", help="build + evaluate a map from every log in a folder (table)")
+    p.add_argument("folder", help="folder searched recursively for .clf, .bag and .log.gz logs")
+    p.add_argument("--odometry", choices=["clean", "degraded", "both"], default="clean",
+                   help="odometry as logged (reference logs: lightly corrupted) or degraded (default: clean)")
+    p.add_argument("--seed", type=int, default=1, help="seed of the odometry corruption (default 1)")
+    p.add_argument("--only", nargs="+", metavar="WORD", help="only logs whose file name contains one of these")
+    p.add_argument("--max-scans", type=int, help="process only the first N scans of each log")
+    p.add_argument("--json", help="also write the rows to this JSON file")
+    p.set_defaults(func=run_bench)
+    return p
+
+
+def run_localize(args: argparse.Namespace) -> int:
+    """AMCL on the real scans of every corrected log against the map of its reference trajectory."""
+    from services.localization.slam.localization_check import localize_on_reference
+    from services.localization.slam.logs import read_log
+    from services.localization.slam.odometry_noise import OdometryNoise
+
+    folder = Path(args.folder)
+    logs = [p for p in find_logs(folder) if has_reference(p)] if folder.is_dir() else []
+    if args.only:
+        logs = [p for p in logs if any(word in p.name for word in args.only)]
+    if not logs:
+        print(f"zagv map localize: no corrected (reference-trajectory) log in {folder}", file=sys.stderr)
+        return 2
+    noise = OdometryNoise.for_reference(args.seed)
+    print(f"odometry: reference corrupted with {noise.describe()}")
+    print(f"{'log':34s} {'scans':>6s} {'updates':>7s} {'mean_m':>7s} {'rms_m':>7s} {'max_m':>7s} {'rot_rms':>7s} "
+          f"{'lost':>5s}")
+    results = {}
+    for path in logs:
+        log = read_log(path)
+        if args.max_scans:
+            log.scans = log.scans[:args.max_scans]
+        try:
+            error = localize_on_reference(log, noise)
+        except ValueError as exc:
+            print(f"zagv map localize: {path.name}: {exc}", file=sys.stderr)
+            continue
+        results[path.name] = error.as_dict()
+        print(f"{path.name:34s} {len(log.scans):6d} {error.n_updates:7d} {error.mean_m:7.3f} {error.rms_m:7.3f} "
+              f"{error.max_m:7.3f} {error.rotation_rms_rad:7.4f} {100 * error.lost_fraction:4.0f}%", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+    return 0
+
+
+def add_localize_parser(map_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = map_subparsers.add_parser("localize", help="AMCL on corrected logs' real scans against their reference map")
+    p.add_argument("folder", help="folder searched recursively for *corrected* CARMEN logs")
+    p.add_argument("--seed", type=int, default=1, help="seed of the odometry corruption and the filter")
+    p.add_argument("--only", nargs="+", metavar="WORD", help="only logs whose file name contains one of these")
+    p.add_argument("--max-scans", type=int, help="use only the first N scans of each log")
+    p.add_argument("--json", help="also write the figures to this JSON file")
+    p.set_defaults(func=run_localize)
+    return p

@@ -1,0 +1,217 @@
+"""``zagv scenario suite [SUITE.toml] --maps-dir DIR``: the robustness benchmark over many maps.
+
+For every map of the suite file and every seed, ``zagv scenario generate`` draws a scenario of reachable goals
+(services/cli/scenario_generate.py); one simulated stack per map then drives the goals of each seed in turn (the
+robot teleported to that seed's start). Every goal is judged by the ground truth against the goal tolerance
+(services/cli/scenario.py). The table has one row per map: goals, reached, what nav claimed and how often it
+claimed success outside the tolerance, collisions, recoveries, max and RMS localization error, time per metre.
+
+Suite TOML::
+
+    goals = 5                 # per seed and map
+    seeds = [1, 2, 3]
+    speed = 4.0               # sim speed factor
+    [[maps]]
+    world = "warehouse"       # a built-in sim world, or
+    [[maps]]
+    map = "mit_stata_basement/stata_basement.yaml"   # a ROS map YAML, relative to --maps-dir (else the suite file)
+    name = "mit_stata_basement"                      # optional row name
+
+A map whose YAML is missing is skipped (named in the output); a map on which no goal is reachable for the footprint
+(too narrow for the robot) gets a row saying so and no goals.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import sys
+import tempfile
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.cli.scenario import leg_totals, load_scenario, run_scenario
+from services.cli.scenario_generate import GenerateError, generate_file, map_label
+
+
+@dataclass
+class SuiteMap:
+    name: str
+    world: str | None = None
+    map_yaml: str | None = None
+
+
+@dataclass
+class Suite:
+    maps: list[SuiteMap]
+    goals: int = 5
+    seeds: tuple[int, ...] = (1, 2, 3)
+    speed: float = 4.0
+
+
+def load_suite(path: Path, maps_dir: Path | None) -> tuple[Suite, list[str]]:
+    """The suite and the names of the maps skipped because their YAML is missing."""
+    data = tomllib.loads(path.read_text())
+    maps, skipped = [], []
+    for k, e in enumerate(data.get("maps", []), 1):
+        if ("world" in e) == ("map" in e):
+            raise ValueError(f"{path}: maps[{k}] needs exactly one of `world` or `map`")
+        if "world" in e:
+            maps.append(SuiteMap(str(e.get("name", e["world"])), world=str(e["world"])))
+            continue
+        rel = Path(e["map"])
+        candidates = [rel] if rel.is_absolute() else [(maps_dir or path.parent) / rel, path.parent / rel]
+        found = next((c for c in candidates if c.is_file()), None)
+        name = str(e.get("name", map_label(str(rel))))
+        if found is None:
+            skipped.append(name)
+            continue
+        maps.append(SuiteMap(name, map_yaml=str(found.resolve())))
+    return Suite(maps, int(data.get("goals", 5)), tuple(int(s) for s in data.get("seeds", [1, 2, 3])),
+                 float(data.get("speed", 4.0))), skipped
+
+
+def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float, extra_set: list[str],
+            max_leg_m: float = 20.0) -> dict:
+    """Generate and drive every seed's goals on one map; the map's row with its runs."""
+    from services.cli.stack_process import Stack
+
+    row: dict = {"map": entry.name, "runs": [], "note": ""}
+    files = []
+    for seed in suite.seeds:
+        try:
+            files.append(generate_file(run_dir / f"{entry.name}_s{seed}.toml", map_yaml=entry.map_yaml,
+                                       world=entry.world, n_goals=suite.goals, seed=seed, speed=suite.speed,
+                                       name=f"{entry.name}_s{seed}", max_leg_m=max_leg_m))
+        except GenerateError as exc:
+            row["note"] = f"no goals: {exc}"
+            return row
+    extra = ["--headless"] + [a for s in extra_set for a in ("--set", s)]
+    (run_dir / entry.name).mkdir(parents=True, exist_ok=True)
+    stack = Stack(run_dir / entry.name, None, world=entry.world or "corridor", map_yaml=entry.map_yaml,
+                  speed=suite.speed, extra_args=extra)
+    print(f"zagv scenario suite: {entry.name}: starting the stack (log {run_dir / entry.name / 'stack.log'})",
+          flush=True)
+    try:
+        stack.start(ready_timeout_s=180.0)
+        session = stack.session()
+        for seed, f in zip(suite.seeds, files, strict=True):
+            sc = load_scenario(f)
+
+            def progress(s: str, seed: int = seed) -> None:
+                print(f"{entry.name} s{seed}: {s}", flush=True)
+
+            try:
+                runs, _, collisions, _, _ = asyncio.run(run_scenario(sc, session, stack.keys,
+                                                                     goal_timeout_s=goal_timeout_s, plots=False,
+                                                                     progress=progress))
+            except (AssertionError, RuntimeError) as exc:  # that seed stopped; its goals count as not reached
+                row["note"] += f"seed {seed} stopped: {exc}; "
+                runs = [{"run": 1, "goals": [
+                    {"id": g.id, "target": list(g.pose), "reached": False, "claimed": "not run", "final": [None] * 3,
+                     "error": [None] * 3, "time_s": 0.0, "recoveries": 0, "collisions": 0, "driven_m": 0.0,
+                     "loc_error_max_m": None, "loc_error_rms_m": None, "nav_error": str(exc)} for g in sc.goals]}]
+            for r in runs:
+                r["seed"] = seed
+            row["runs"].extend(runs)
+    except (AssertionError, RuntimeError) as exc:
+        row["note"] += f"stopped: {exc}"
+    finally:
+        stack.stop()
+    return row
+
+
+def row_figures(row: dict) -> dict:
+    return {"map": row["map"], **leg_totals(row["runs"]), "note": row["note"]}
+
+
+def format_rows(rows: list[dict]) -> str:
+    head = (f"{'map':<22} {'goals':>5} {'reached':>8} {'claimed':>8} {'claim!ok':>8} {'coll':>4} {'recov':>5} "
+            f"{'loc max m':>9} {'loc rms m':>9} {'s/m':>6}  note")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(f"{r['map']:<22} {r['goals']:>5} {r['reached']:>8} {r['claimed']:>8} {r['claimed_outside']:>8} "
+                     f"{r['collisions']:>4} {r['recoveries']:>5} {r['loc_error_max_m']:>9.3f} "
+                     f"{r['loc_error_rms_m']:>9.3f} {r['time_per_metre_s']:>6.1f}  {r['note']}")
+    return "\n".join(lines)
+
+
+def bench_rows(rows: list[dict], runs: list[dict]) -> list[dict]:
+    """The ``scenario.suite_*`` summary and ``nav.time_per_metre_s`` (reached legs: sim s per ground-truth m)."""
+    t = leg_totals(runs)
+    n = max(t["goals"], 1)
+    return [
+        {"name": "scenario.suite_maps", "value": float(sum(1 for r in rows if r["goals"])), "unit": "maps",
+         "goal": ">= 8"},
+        {"name": "scenario.suite_goals", "value": float(t["goals"]), "unit": "goals", "goal": ">= 120"},
+        {"name": "scenario.suite_reached_pct", "value": 100.0 * t["reached"] / n, "unit": "%", "goal": ">= 97"},
+        {"name": "scenario.suite_collisions", "value": float(t["collisions"]), "unit": "count", "goal": "0"},
+        {"name": "scenario.suite_claimed_outside", "value": float(t["claimed_outside"]), "unit": "count",
+         "goal": "0"},
+        {"name": "scenario.suite_recoveries", "value": float(t["recoveries"]), "unit": "count", "goal": ""},
+        {"name": "scenario.suite_loc_error_max_m", "value": t["loc_error_max_m"], "unit": "m", "goal": ""},
+        {"name": "scenario.suite_loc_error_rms_m", "value": t["loc_error_rms_m"], "unit": "m", "goal": ""},
+        {"name": "nav.time_per_metre_s", "value": t["time_per_metre_s"], "unit": "s/m", "goal": "-> 5 (0.2 m/s)"},
+    ]
+
+
+def add_parser(ssub: argparse._SubParsersAction) -> None:
+    sp = ssub.add_parser("suite", help="the robustness benchmark: generated goals on many maps, one table")
+    sp.add_argument("file", nargs="?", default="scenarios/suite.toml", help="suite TOML (default %(default)s)")
+    sp.add_argument("--maps-dir", help="folder the suite's map paths are relative to")
+    sp.add_argument("--only", help="comma-separated map names to run")
+    sp.add_argument("--seeds", help="comma-separated seeds (override the file)")
+    sp.add_argument("--goals", type=int, help="goals per seed and map (override the file)")
+    sp.add_argument("--speed", type=float, help="sim speed factor (override the file)")
+    sp.add_argument("--max-leg", type=float, default=20.0,
+                    help="m in a straight line between consecutive goals at most (default %(default)s)")
+    sp.add_argument("--goal-timeout", type=float, default=600.0, help="sim seconds per goal (default %(default)s)")
+    sp.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="stack config override")
+    sp.add_argument("--json", help="write the rows, bench rows and every goal's result to this file")
+    sp.add_argument("--run-dir", help="folder for generated scenarios and stack logs (default: temporary)")
+    sp.set_defaults(func=run_suite)
+
+
+def run_suite(args: argparse.Namespace) -> int:
+    try:
+        suite, skipped = load_suite(Path(args.file), Path(args.maps_dir) if args.maps_dir else None)
+    except (OSError, ValueError, tomllib.TOMLDecodeError) as exc:
+        print(f"zagv scenario suite: {exc}", file=sys.stderr)
+        return 2
+    if args.seeds:
+        suite.seeds = tuple(int(s) for s in args.seeds.split(","))
+    if args.goals:
+        suite.goals = args.goals
+    if args.speed:
+        suite.speed = args.speed
+    if args.only:
+        wanted = set(args.only.split(","))
+        suite.maps = [e for e in suite.maps if e.name in wanted]
+    for name in skipped:
+        print(f"zagv scenario suite: {name}: map not found (give --maps-dir), skipped", flush=True)
+    run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-suite-"))
+    run_dir.mkdir(parents=True, exist_ok=True)
+    rows, all_runs, raw = [], [], []
+
+    def write_json() -> None:
+        if args.json:
+            Path(args.json).write_text(json.dumps({"rows": rows, "bench": bench_rows(rows, all_runs),
+                                                   "maps": raw, "skipped": skipped}, indent=1, default=str))
+
+    for entry in suite.maps:
+        row = run_map(entry, suite, run_dir, args.goal_timeout, args.set, getattr(args, "max_leg", 20.0))
+        raw.append(row)
+        all_runs.extend(row["runs"])
+        rows.append(row_figures(row))
+        print(format_rows(rows[-1:]), flush=True)
+        write_json()
+    print(format_rows(rows))
+    for b in bench_rows(rows, all_runs):
+        v = b["value"]
+        print(f"{b['name']:<34} {v if not math.isfinite(v) else round(v, 4):>10} {b['unit']:<6} {b['goal']}")
+    write_json()
+    t = leg_totals(all_runs)
+    return 0 if t["goals"] and t["reached"] == t["goals"] and t["collisions"] == 0 else 1

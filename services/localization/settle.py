@@ -1,0 +1,108 @@
+"""Convergence at rest: no-motion updates with a shrinking jitter until the estimate settles (core, no I/O).
+
+AMCL updates only after the robot moved (``update_min_d``/``update_min_a``). Right after an initial pose the
+particles are a Gaussian cloud; one update at rest collapses it onto the few sampled particles that fit best,
+centimetres from the likelihood peak, with a spread of millimetres: a confident, wrong pose. Here, while the
+filter is *localizing* and the robot stands still, every scan runs a no-motion update after moving each particle
+by N(0, σ), σ = clip(``jitter_gain`` · spread, ``jitter_min``, ``jitter_max``) per axis. Resampling repeated on
+the same view sharpens the population towards the likelihood's peak (its density goes as Lᵏ after k updates) while
+the jitter keeps exploring around it. The estimate has settled when, over the last ``window`` updates (at least
+``min_updates`` in all), its position moved less than ``settle_m`` and its heading less than ``settle_rad``; the
+verdict then turns from ``localizing`` to ``tracking``. While the robot moves, plain AMCL runs and the window
+starts again.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.localization.amcl import Amcl, ScanBeams, wrap_angle
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SettleParams:
+    """Jitter and settling thresholds (m, rad); see the module docstring."""
+
+    jitter_gain: float = 0.5
+    jitter_min_m: float = 0.002
+    jitter_max_m: float = 0.10
+    jitter_min_rad: float = 0.002
+    jitter_max_rad: float = 0.05
+    window: int = 12
+    min_updates: int = 20
+    settle_m: float = 0.003
+    settle_rad: float = 0.003
+    #: odometry moving more than this between scans means the robot is not at rest
+    rest_m: float = 0.002
+    rest_rad: float = 0.002
+
+
+class AtRestSettler:
+    """Drives an ``Amcl`` while it is localizing; ``converged`` once the estimate settled at rest."""
+
+    def __init__(self, params: SettleParams | None = None) -> None:
+        self.params = params or SettleParams()
+        self.converged = False
+        self.updates = 0
+        self._recent: collections.deque[Pose] = collections.deque(maxlen=self.params.window)
+        self._last_odom: Pose | None = None
+
+    def restart(self) -> None:
+        """Localizing again (a new initial pose, a restart, global localization)."""
+        self.converged = False
+        self.updates = 0
+        self._recent.clear()
+        self._last_odom = None
+
+    def at_rest(self, odom_pose: Pose) -> bool:
+        last, self._last_odom = self._last_odom, odom_pose
+        if last is None:
+            return True
+        p = self.params
+        return (math.hypot(odom_pose[0] - last[0], odom_pose[1] - last[1]) <= p.rest_m
+                and abs(float(wrap_angle(odom_pose[2] - last[2]))) <= p.rest_rad)
+
+    def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose, stamp: float | None = None) -> bool:
+        """One scan (at ``stamp``): a jittered no-motion update at rest, plain AMCL when moving; returns whether
+        the filter updated."""
+        if self.converged:
+            return amcl.process(odom_pose, beams, mount, stamp)
+        if not self.at_rest(odom_pose):
+            self._recent.clear()
+            return amcl.process(odom_pose, beams, mount, stamp)
+        if amcl.estimate is not None:
+            self._jitter(amcl)
+        amcl.request_nomotion_update()
+        updated = amcl.process(odom_pose, beams, mount, stamp)
+        if updated and amcl.estimate is not None:
+            self.updates += 1
+            self._recent.append(amcl.estimate.pose)
+            self.converged = self._settled()
+        return updated
+
+    def _jitter(self, amcl: Amcl) -> None:
+        p = self.params
+        pf = amcl.pf
+        cov = amcl.estimate.covariance
+        spread_m = math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0) / 2.0)
+        spread_rad = math.sqrt(max(cov[2, 2], 0.0))
+        s_xy = min(max(p.jitter_gain * spread_m, p.jitter_min_m), p.jitter_max_m)
+        s_th = min(max(p.jitter_gain * spread_rad, p.jitter_min_rad), p.jitter_max_rad)
+        n = pf.n
+        pf.poses[:n, :2] += pf.rng.standard_normal((n, 2)) * s_xy
+        pf.poses[:n, 2] = wrap_angle(pf.poses[:n, 2] + pf.rng.standard_normal(n) * s_th)
+
+    def _settled(self) -> bool:
+        p = self.params
+        if self.updates < p.min_updates or len(self._recent) < p.window:
+            return False
+        poses = np.asarray(self._recent)
+        xy = poses[:, :2] - poses[-1, :2]
+        turn = wrap_angle(poses[:, 2] - poses[-1, 2])
+        return bool(np.max(np.hypot(xy[:, 0], xy[:, 1])) < p.settle_m and np.max(np.abs(turn)) < p.settle_rad)

@@ -1,0 +1,20 @@
+"""``python -m services.safety``: the collision monitor between ``cmd_vel`` and the drive (``safety/cmd_vel``)."""
+
+from __future__ import annotations
+
+from services.common.service import ServiceContext, service_main
+from services.safety.config import SafetyConfig
+
+
+async def run(ctx: ServiceContext) -> None:
+    from services.safety.node import run as run_node
+
+    await run_node(ctx)
+
+
+def main() -> None:
+    service_main("safety", {"safety": SafetyConfig}, run)
+
+
+if __name__ == "__main__":
+    main()

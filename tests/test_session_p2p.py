@@ -1,0 +1,91 @@
+"""The rmw_zenoh data path: peers find each other through the router, then exchange data directly.
+
+A real router process (``zagv router``, with the deployed loopback config or the built-in settings ``zagv up``
+embeds) and peer sessions as the services open them; "directly" is shown by the data still flowing after the
+router is killed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.common.session import PEER_LISTEN_DEFAULT, open_session, shm_usable, zenoh_config
+from services.common.settings import ZenohSettings
+from tests.support.stack import free_port
+from tests.support.waiting import wait_for_sync
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_peer_defaults_listen_on_loopback_only_and_gossip_without_multicast() -> None:
+    conf = zenoh_config(ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"]))
+    assert json.loads(conf.get_json("mode")) == "peer"
+    assert json.loads(conf.get_json("listen/endpoints")) == [PEER_LISTEN_DEFAULT]
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(conf.get_json("scouting/gossip/enabled")) is True
+    assert json.loads(conf.get_json("scouting/gossip/multihop")) is False
+    router = zenoh_config(ZenohSettings(mode="router", connect=[], listen=["tcp/127.0.0.1:7447"]))
+    assert json.loads(router.get_json("scouting/gossip"))["autoconnect"]["router"] == []
+
+
+def test_shared_memory_falls_back_where_dev_shm_is_not_writable(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    assert not shm_usable(str(tmp_path / "missing"))
+    monkeypatch.setattr("services.common.session.SHM_DIR", str(tmp_path / "missing"))
+    conf = zenoh_config(ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"]))
+    assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("router_config", [None, "deploy/zenoh/router-loopback.json5"])
+def test_peers_exchange_data_directly_and_keep_going_without_the_router(router_config: str | None) -> None:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    args = [sys.executable, "-m", "services.cli", "router", "--listen", endpoint]
+    if router_config:
+        args += ["--config", str(REPO_ROOT / router_config)]
+    router = subprocess.Popen(args, cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL, start_new_session=True)
+    sessions: list[zenoh.Session] = []
+    try:
+        a = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+        b = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+        sessions += [a, b]
+        wait_for_sync(lambda: str(b.info.zid()) in {str(z) for z in a.info.peers_zid()}, timeout_s=20,
+                      message="the two peers never connected to each other")
+        got: list[bytes] = []
+        lock = threading.Lock()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with lock:
+                got.append(sample.payload.to_bytes())
+
+        b.declare_subscriber("zagv-test/p2p", on_sample)
+        big = os.urandom(200_000)  # above the shared-memory threshold
+        pub = a.declare_publisher("zagv-test/p2p")
+
+        def arrived(payload: bytes) -> bool:
+            pub.put(payload)
+            with lock:
+                return payload in got
+
+        wait_for_sync(lambda: arrived(b"before"), timeout_s=20, poll_s=0.1, message="no data through the peers")
+        wait_for_sync(lambda: arrived(big), timeout_s=20, poll_s=0.1, message="a large payload never arrived")
+        os.killpg(router.pid, signal.SIGKILL)
+        router.wait(10)
+        wait_for_sync(lambda: arrived(b"after the router died"), timeout_s=20, poll_s=0.1,
+                      message="data stopped with the router: it was not peer-to-peer")
+    finally:
+        for s in sessions:
+            s.close()
+        if router.poll() is None:
+            os.killpg(router.pid, signal.SIGKILL)
+            router.wait()

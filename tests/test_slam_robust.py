@@ -1,0 +1,155 @@
+"""Robustness of the SLAM: laser mount handling, odometry corruption, loop-closure verification, the bench slice."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.localization.slam.evaluation import aligned_trajectory_error, false_closures, scan_poses
+from services.localization.slam.logs import parse_carmen, read_log, with_mount
+from services.localization.slam.mapper import GraphSlam, LoopClosure
+from services.localization.slam.odometry_noise import OdometryNoise, corrupt_poses
+from services.localization.slam.offline import run_slam
+from services.localization.slam.se2 import between, compose
+
+
+@pytest.fixture
+def logs_dir(shared_dir):
+    path = shared_dir / "data" / "logs"
+    if not (path / "mit-csail.clf").is_file():
+        pytest.skip(f"benchmark logs not found in {path}")
+    return path
+
+
+def test_carmen_front_laser_offset_and_unusable_stamps():
+    scan = " ".join(["1.0"] * 5)
+    lines = ["PARAM robot_frontlaser_offset 0.25 0 host 0",
+             f"FLASER 5 {scan} 0 0 0 0 0 0 1.13486e+09 pippo 1.13486e+09",
+             f"FLASER 5 {scan} 1 0 0 1 0 0 1.13486e+09 pippo 1.13486e+09",
+             f"FLASER 5 {scan} 2 0 0 2 0 0 1.13486e+09 pippo 1.13486e+09"]
+    log = parse_carmen(lines)
+    np.testing.assert_allclose(log.sensor_pose, [0.25, 0.0, 0.0])
+    assert not log.stamps_from_log  # truncated stamps: the scan index stands in
+    assert [s.stamp_s for s in log.scans] == [0.0, 1.0, 2.0]
+    np.testing.assert_allclose([s.odom_pose[0] for s in log.scans], [0, 1, 2])  # file order kept
+    bad = "ROBOTLASER1 0 -1.5708 3.14159 1.5708 81.9 0.01 0 3 1 1 1 0 50 0 0 0 0 0 0 0 0 0 0 0 5.0 h 5.0"
+    with pytest.raises(ValueError, match="not a mount offset"):
+        parse_carmen([bad])
+
+
+def test_odometry_corruption_is_seeded_and_as_documented():
+    # 100 m straight along x in 0.1 m steps
+    truth = np.stack([np.arange(1001) * 0.1, np.zeros(1001), np.zeros(1001)], axis=1)
+    drift_only = OdometryNoise(seed=3, scale_error=0.05, drift_rad_per_m=math.radians(2.0))
+    odom, jumps = corrupt_poses(truth, drift_only)
+    assert jumps == 0
+    steps = between(odom[:-1], odom[1:])
+    assert abs(np.hypot(steps[:, 0], steps[:, 1]).sum() / 100.0 - 1.0) == pytest.approx(0.05)  # wheel scale ±5 %
+    np.testing.assert_allclose(np.abs(steps[:, 2]), math.radians(2.0) * 0.1)  # 2°/m, one sign per run
+    degraded = OdometryNoise.degraded(seed=7)
+    a, jumps_a = corrupt_poses(truth, degraded)
+    b, _ = corrupt_poses(truth, degraded)
+    np.testing.assert_array_equal(a, b)
+    assert jumps_a >= 1  # about one per 50 m
+    c, _ = corrupt_poses(truth, OdometryNoise.degraded(seed=8))
+    assert np.abs(a - c).max() > 0.1
+    assert "2°/m" in degraded.describe() and "±5 %" in degraded.describe()
+
+
+def test_aligned_trajectory_error_ignores_a_rigid_motion():
+    rng = np.random.default_rng(0)
+    reference = np.cumsum(rng.normal(0, 0.3, (200, 3)), axis=0)
+    moved = compose(np.broadcast_to([5.0, -3.0, 1.2], reference.shape), reference)
+    assert aligned_trajectory_error(moved, reference).rms_m < 1e-9
+    noisy = moved + np.c_[rng.normal(0, 0.05, (200, 2)), np.zeros(200)]
+    assert aligned_trajectory_error(noisy, reference).rms_m == pytest.approx(0.05 * math.sqrt(2), rel=0.2)
+    measured = np.array([between(reference[3], reference[150]), [0.5, 0.0, 0.0]])
+    assert false_closures(np.array([3, 3]), np.array([150, 150]), measured, reference).tolist() == [False, True]
+
+
+def _chain_graph(n: int) -> GraphSlam:
+    """A GraphSlam whose graph is a square loop of n keyframes 1 m apart with exact sequential edges."""
+    slam = GraphSlam()
+    side = n // 4
+    poses = []
+    pose = np.zeros(3)
+    for k in range(n):
+        poses.append(pose.copy())
+        step = np.array([1.0, 0.0, math.pi / 2 if (k + 1) % side == 0 else 0.0])
+        pose = compose(pose, step)
+    for k, p in enumerate(poses):
+        slam.graph.add_node(p)
+        slam._keyframes.append(type("K", (), {"travel_m": float(k)})())
+        if k:
+            slam.graph.add_edge(k - 1, k, between(poses[k - 1], p), slam._sequential_info)
+    return slam
+
+
+def test_false_loop_closure_is_rejected_and_true_ones_kept():
+    slam = _chain_graph(40)
+    poses = slam.graph.poses()
+    true_a = LoopClosure(0, 38, between(poses[0], poses[38]), 0.0)
+    true_b = LoopClosure(1, 39, between(poses[1], poses[39]), 0.0)
+    false = LoopClosure(5, 36, compose(between(poses[5], poses[36]), np.array([1.5, 0.8, 0.3])), 1.9)
+    slam.closures += [true_a, true_b, false]
+    assert slam._consistent(true_a, true_b, poses)
+    assert not slam._consistent(true_a, false, poses)
+    for closure in (true_a, true_b, false):
+        slam._accept(closure)
+    slam.optimize()
+    assert [c.state for c in (true_a, true_b, false)] == ["accepted", "accepted", "rejected"]
+    assert slam.rejected_closures == [false] and false.reason == "contradicts the graph"
+    error = between(poses, slam.graph.poses())  # the false edge no longer bends the graph
+    assert np.abs(error[:, :2]).max() < 1e-3 and np.abs(error[:, 2]).max() < 1e-3
+
+
+def test_pending_closure_needs_a_consistent_partner():
+    slam = _chain_graph(40)
+    poses = slam.graph.poses()
+    offset = np.array([0.6, 0.0, 0.0])  # both see the same large correction: the graph drifted, not the matcher
+    a = LoopClosure(0, 36, compose(between(poses[0], poses[36]), offset), 0.6)
+    b = LoopClosure(1, 37, compose(between(poses[1], poses[37]), offset), 0.6)
+    lonely = LoopClosure(10, 30, compose(between(poses[10], poses[30]), np.array([0.0, 0.9, 0.2])), 1.1)
+    slam.closures += [lonely]
+    slam._check_pending(30)
+    assert lonely.state == "pending"
+    slam.closures += [a, b]
+    slam._check_pending(37)
+    assert a.state == b.state == "accepted"
+    slam._check_pending(30 + slam.config.loop_consistency_keyframes + 1)
+    assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
+
+
+@pytest.mark.timeout(900)  # two SLAM runs over 150 scans: ~8 s of CPU
+def test_mount_offset_does_not_change_the_result(logs_dir):
+    """The same scans re-expressed for a laser 0.25 m ahead and 0.05 m left of the robot frame, and the
+    trajectory of the laser (what the relations measure) stays the same up to matcher noise (the robot frame moves,
+    so keyframes are picked at slightly different scans: ~1 cm RMS); a misapplied 0.25 m mount would show as
+    decimetres."""
+    log = read_log(logs_dir / "mit-csail.clf")
+    log.scans = log.scans[:150]
+    shifted = with_mount(log, np.array([0.25, 0.05, 0.0]))
+    laser_before = scan_poses(np.array([s.odom_pose for s in log.scans]), log.sensor_pose)
+    laser_after = scan_poses(np.array([s.odom_pose for s in shifted.scans]), shifted.sensor_pose)
+    np.testing.assert_allclose(laser_after, laser_before, atol=1e-9)
+    runs = [run_slam(x) for x in (log, shifted)]
+    lasers = [scan_poses(r.slam.trajectory()[1], x.sensor_pose) for r, x in zip(runs, (log, shifted), strict=True)]
+    rel = [between(p[0], p) for p in lasers]  # both relative to the first scan's laser pose
+    d = np.hypot(*(rel[0][:, :2] - rel[1][:, :2]).T)
+    assert d.max() < 0.10 and np.sqrt(np.mean(d**2)) < 0.03, (d.max(), np.sqrt(np.mean(d**2)))
+    grids = [r.slam.render_map() for r in runs]
+    occupied = [(g.probability() > 0.65).sum() for g in grids]
+    assert abs(occupied[0] - occupied[1]) < 0.05 * occupied[0]
+
+
+def test_mount_is_composed_along_the_static_transform_chain():
+    from services.localization.slam.logs import mount_from_transforms
+
+    fixed = {"laser": ("laser_mount", np.array([0.1, 0.0, math.pi / 2])),
+             "laser_mount": ("base_link", np.array([0.12, 0.02, 0.0])),
+             "base_link": ("base_footprint", np.array([0.5, 0.0, 0.0]))}
+    np.testing.assert_allclose(mount_from_transforms("laser", fixed, "base_link"), [0.22, 0.02, math.pi / 2])
+    np.testing.assert_allclose(mount_from_transforms("laser", fixed, None), [0.72, 0.02, math.pi / 2])
+    np.testing.assert_allclose(mount_from_transforms("other", fixed, "base_link"), [0.0, 0.0, 0.0])
