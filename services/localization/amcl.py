@@ -119,6 +119,11 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     #: random-particle injection (recovery_alpha_*) only while the filter is not tracking: a tracking filter is
     #: trusted, and injecting into it on a poorly matching stretch of a real map is what made it jump
     inject_while_tracking: bool = False
+    #: ... except when the likelihood collapses: while tracking, an injection probability (1 - w_fast / w_slow) of at
+    #: least this still injects. A kidnapping along a self-similar corridor keeps the scans fitting the walls (the
+    #: verdict stays tracking) while the likelihood drops well below its tracking level; a poorly matching stretch
+    #: of a real map lowers it only a little
+    tracking_injection_min: float = 0.1
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -144,6 +149,7 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "local_recovery_radius_m": self.local_recovery_radius_m > 0,
             "recovery_attempt_s": self.recovery_attempt_s > 0, "global_recovery_s": self.global_recovery_s > 0,
             "recovery_update_period_s": self.recovery_update_period_s >= 0,
+            "tracking_injection_min": 0 <= self.tracking_injection_min <= 1,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -609,7 +615,9 @@ class ParticleFilter:
         self.rng.shuffle(picks)  # KLD takes a prefix: it must be a random subset, not the lowest indices
         new = self._poses_next[:m]
         np.take(self.poses, picks, axis=0, out=new)
-        w_diff = self.injection_probability() if self.allow_injection else 0.0
+        w_diff = self.injection_probability()
+        if not self.allow_injection and w_diff < self.params.tracking_injection_min:
+            w_diff = 0.0
         if w_diff > 0.0:
             inject = np.nonzero(self.rng.random(m) < w_diff)[0]
             if inject.size:
@@ -867,7 +875,11 @@ class Amcl:
             if self.match_score < p.lost_score or self.spread_m > p.lost_spread_m:
                 self.lost_at = now
                 self.lost_reason = f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m"
-                self._start_stage(0)
+                # first the Augmented-MCL injection (allowed now, with w_slow still at the tracking level) for
+                # recovery_attempt_s: it finds a nearby kidnap within centimetres of travel; the sensor resets
+                # around last_good, then global, follow only when it has not converged by then
+                self._stage, self._stage_started_at = -1, now
+                self._set_state("lost", f"recovering by random-particle injection (lost: {self.lost_reason})")
             else:
                 self.last_good = pose
             return
