@@ -36,6 +36,9 @@ class SettleParams:
     jitter_max_rad: float = 0.05
     window: int = 12
     min_updates: int = 20
+    #: at most this many at-rest updates hold the verdict at localizing: the jitter can keep a good estimate
+    #: wandering by more than settle_m, and nav, which waits for tracking, would then never move the robot
+    max_updates: int = 150
     settle_m: float = 0.003
     settle_rad: float = 0.003
     #: odometry moving more than this between scans means the robot is not at rest
@@ -83,7 +86,7 @@ class AtRestSettler:
         if updated and amcl.estimate is not None:
             self.updates += 1
             self._recent.append(amcl.estimate.pose)
-            self.converged = self._settled()
+            self.converged = self._settled() or self.updates >= self.params.max_updates
         return updated
 
     def _jitter(self, amcl: Amcl) -> None:
