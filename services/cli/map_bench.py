@@ -23,6 +23,7 @@ import json
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 
@@ -132,7 +133,9 @@ def _fmt(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def print_table(rows: list[BenchResult], out=sys.stdout) -> None:
+def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
+    """One row per log; ``out`` defaults to the current ``sys.stdout`` (looked up at call time)."""
+    out = sys.stdout if out is None else out
     header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
               f"{'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} {'rej':>4s} {'false':>5s} {'fallbk':>6s}")
     print(header, file=out)
