@@ -25,10 +25,12 @@ def test_kill9_loses_no_acknowledged_pose(tmp_path):
         patched: dict[int, set[float]] = {}  # id -> x values that may be there (last acked, in flight)
         stop = threading.Event()
         lock = threading.Lock()
+        writing: set[str] = set()  # writers that logged in and are writing
 
         def adder(worker: int) -> None:
             with HmiClient(base_url(stack)) as c:
                 c.login(password)
+                writing.add(f"adder {worker}")
                 i = 0
                 while not stop.is_set():
                     name = f"w{worker}-{i}"
@@ -44,6 +46,7 @@ def test_kill9_loses_no_acknowledged_pose(tmp_path):
         def patcher() -> None:
             with HmiClient(base_url(stack)) as c:
                 c.login(password)
+                writing.add("patcher")
                 r = c.post("/api/poses", json={"name": "patched", "x": 0.0, "y": 0.0, "theta": 0.0})
                 pid = r.json()["id"]
                 with lock:
@@ -65,7 +68,8 @@ def test_kill9_loses_no_acknowledged_pose(tmp_path):
         threads = [threading.Thread(target=adder, args=(w,)) for w in range(2)] + [threading.Thread(target=patcher)]
         for t in threads:
             t.start()
-        wait_for_sync(lambda: len(acked) >= 40, timeout_s=60, message="pose writes too slow to start")
+        wait_for_sync(lambda: len(writing) == len(threads) and len(acked) >= 40, timeout_s=60,
+                      message="pose writers did not all start (login refused?) or wrote too slowly")
         victim = stack.pid("hmi_api")
         lines_before = stack.line_count()
         os.kill(victim, signal.SIGKILL)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import time
 from pathlib import Path
 
 import httpx
@@ -31,8 +32,13 @@ class HmiClient(httpx.Client):
         super().__init__(base_url=base_url, timeout=15.0)
         self.token = ""
 
-    def login(self, password: str) -> str:
+    def login(self, password: str, timeout_s: float = 30.0) -> str:
+        """Log in; a 429 while another login from this host is being checked is retried until ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
         r = self.post("/api/login", json={"password": password})
+        while r.status_code == 429 and "being checked" in r.text and time.monotonic() < deadline:
+            time.sleep(min(float(r.headers.get("retry-after", "0.2")), 0.2))
+            r = self.post("/api/login", json={"password": password})
         assert r.status_code == 200, r.text
         self.token = r.json()["token"]
         self.headers["authorization"] = f"Bearer {self.token}"
