@@ -19,7 +19,7 @@ from proto.keys import Keys
 from proto.messages import LaserScan, Pose2D
 from services.common.clock import WallClock
 from services.common.node import Node
-from services.common.session import open_session, router_settings
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.sim.lms111 import Lms111Emulator
 from tests.support.stack import free_port as new_free_port
@@ -28,14 +28,6 @@ from tests.test_lidar_emulator import CircleRoom, check_ranges
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.integration
-
-
-@pytest.fixture
-def router(free_port):
-    endpoint = f"tcp/127.0.0.1:{free_port}"
-    session = open_session(router_settings([endpoint]))
-    yield endpoint
-    session.close()
 
 
 @pytest.fixture

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from services.common.se2 import compose, inverse
 from services.localization.amcl import (
     Amcl,
     AmclParams,
@@ -14,8 +15,6 @@ from services.localization.amcl import (
     ScanBeams,
     beam_indices,
     cluster_labels,
-    compose,
-    inverse,
     kld_limit,
     select_beams,
 )

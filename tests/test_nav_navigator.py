@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 from services.nav.config import NavConfig
 from services.nav.costmap import ScanObservation
 from services.nav.navigator import Navigator
@@ -123,7 +124,7 @@ def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicS
 
 def pose_error(sim: KinematicSim, goal: tuple[float, float, float]) -> tuple[float, float, float]:
     e = sim.pose - np.asarray(goal)
-    return float(e[0]), float(e[1]), float((e[2] + math.pi) % (2 * math.pi) - math.pi)
+    return float(e[0]), float(e[1]), wrap_angle(float(e[2]))
 
 
 @pytest.mark.parametrize("goal", [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (1.0, -0.5, -2.5)])

@@ -62,13 +62,9 @@ from proto import codec
 from proto import messages as m
 from proto.keys import Keys
 from services.common.query import QueryError, query
+from services.common.se2 import compose, wrap_angle
 
 TERMINAL = ("succeeded", "failed", "canceled")
-
-
-def wrap(a: float) -> float:
-    """Angle wrapped to (-pi, pi]."""
-    return -((-a + math.pi) % (2 * math.pi) - math.pi)
 
 
 # --------------------------------------------------------------------------- scenario file
@@ -352,9 +348,7 @@ class Client:
         """The robot's pose as nav sees it: map->odom composed with the odometry pose."""
         if self.odom is None or self.map_odom is None:
             return None
-        a, b = self.map_odom, self.odom
-        c, s = math.cos(a[2]), math.sin(a[2])
-        return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
+        return compose(self.map_odom, self.odom)
 
     def _on_pose(self, msg: m.PoseWithCovariance) -> None:
         self.pose = msg
@@ -440,7 +434,7 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
             return (e is not None and c.pose_count > count_at_set  # noqa: B023
                     and (e.state == "tracking" or not converged)
                     and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
-                    and abs(wrap(e.pose.theta - pose[2])) < 0.1)
+                    and abs(wrap_angle(e.pose.theta - pose[2])) < 0.1)
 
         try:  # localization converges at rest (state "tracking"); a map where it cannot settle keeps the near pose
             with contextlib.suppress(RuntimeError):
@@ -535,10 +529,10 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         if c.truth is not None:
             p = c.truth.pose
             result["final"] = [p.x, p.y, p.theta]
-            result["error"] = [p.x - goal.pose[0], p.y - goal.pose[1], wrap(p.theta - goal.pose[2])]
+            result["error"] = [p.x - goal.pose[0], p.y - goal.pose[1], wrap_angle(p.theta - goal.pose[2])]
             est = c.estimate()
             if est is not None:  # how far localization was off at the end (diagnostic, not in the JSON)
-                c.localization_errors.append((est[0] - p.x, est[1] - p.y, wrap(est[2] - p.theta)))
+                c.localization_errors.append((est[0] - p.x, est[1] - p.y, wrap_angle(est[2] - p.theta)))
         judge_leg(result, state, error, leg, c.collisions - collisions_before, xy_tol_m, yaw_tol_rad)
         if state != "succeeded":
             print(f"scenario: run {run} goal {goal.id}: {state} {error}", flush=True)

@@ -14,7 +14,6 @@ import importlib.util
 import os
 import random
 import signal
-import socket
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -155,12 +154,6 @@ class StackPlan:
 
 def _toml_str(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def render_world_map(plan: StackPlan) -> None:

@@ -15,6 +15,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from services.common.se2 import wrap_angle
+
 log = logging.getLogger("zagv.drive.imu")
 
 PREFIX = "#YPRAG="
@@ -51,9 +53,7 @@ def parse_line(line: str) -> ImuSample:
     if not all(math.isfinite(x) for x in v):
         raise ImuParseError(f"{PREFIX} has a non-finite value: {text[:80]!r}")
     yaw, pitch, roll, ax, ay, az, gx, gy, gz = v
-    yaw_rad = math.radians(-yaw)
-    yaw_rad = math.atan2(math.sin(yaw_rad), math.cos(yaw_rad))
-    return ImuSample(yaw_rad, math.radians(-pitch), math.radians(roll), (gx, -gy, -gz),
+    return ImuSample(wrap_angle(math.radians(-yaw)), math.radians(-pitch), math.radians(roll), (gx, -gy, -gz),
                      (-ax * G_PER_LSB, ay * G_PER_LSB, az * G_PER_LSB))
 
 

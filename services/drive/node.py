@@ -23,7 +23,6 @@ from services.drive.config import DriveConfig
 from services.drive.controller import DriveController, WheelOdometry
 from services.drive.imu import ImuSample, RazorReader
 from services.drive.kinematics import SwerveKinematics
-from services.drive.limits import TwistLimits
 from services.drive.loop import DriveLoop, LoopSettings, SimTicker, Snapshot, WallTicker
 
 log = logging.getLogger("zagv.drive")
@@ -42,7 +41,7 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,  # n
                          f"{len(ctx_robot.modules)} modules")
     kinematics = SwerveKinematics([(m.x_m, m.y_m) for m in ctx_robot.modules])
     units = cfg.motor_units()
-    controller = DriveController(kinematics, units, TwistLimits.from_robot(ctx_robot), cfg.steering_limits(),
+    controller = DriveController(kinematics, units, ctx_robot.twist_limits(), cfg.steering_limits(),
                                  wheel_speed_max_mps=ctx_robot.wheel_speed_max_mps,
                                  hold_speed_mps=cfg.hold_speed_mps, cosine_scaling=cfg.cosine_scaling)
     odometry = WheelOdometry(kinematics, units, max_step_m=cfg.max_odom_step_m)

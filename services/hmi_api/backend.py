@@ -239,7 +239,7 @@ class Backend:
         return await self.reply_query("drive/estop")
 
     def jog_command(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
-        twist = self.robot.clamp_twist(vx, vy, wz)
+        twist = self.robot.twist_limits().clamp(vx, vy, wz)
         started = self.jog.command(twist, time.monotonic())
         nav = self.view.nav
         if started and nav is not None and nav.state in ACTIVE_NAV_STATES:

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import msgspec
 
+from services.common.se2 import wrap_angle
+
 DB_FILE = "poses.sqlite3"
 EXPORT_FORMAT = "zagv-poses"
 EXPORT_VERSION = 1
@@ -72,12 +74,6 @@ class PoseListFull(PoseDbError):
     """The pose list holds ``max_poses`` already."""
 
 
-def normalize_angle(theta: float) -> float:
-    """theta wrapped to (-pi, pi]."""
-    wrapped = math.remainder(theta, 2.0 * math.pi)
-    return math.pi if wrapped == -math.pi else wrapped
-
-
 def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float, float, float]:
     """Validate and normalise a pose; raises PoseDbError naming the bad field."""
     name = name.strip()
@@ -93,7 +89,7 @@ def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float,
     for field_name, v in (("x", x), ("y", y)):
         if abs(v) > COORD_LIMIT_M:
             raise PoseDbError(f"{field_name} must be within ±{COORD_LIMIT_M:g} m, got {v}")
-    return name, float(x), float(y), normalize_angle(float(theta))
+    return name, float(x), float(y), wrap_angle(float(theta))
 
 
 def check_id(pose_id: int) -> int:

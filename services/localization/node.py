@@ -34,8 +34,9 @@ from proto.messages import (
     Transform2D,
 )
 from services.common.node import Node, TopicPublisher
+from services.common.se2 import wrap_angle
 from services.common.service import ServiceContext
-from services.localization.amcl import Amcl, select_beams, wrap_angle
+from services.localization.amcl import Amcl, select_beams
 from services.localization.config import MAPPING_MODULE, LocalizationConfig, mapping_available
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
 from services.localization.settle import AtRestSettler

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.localization.amcl import Amcl, ScanBeams, wrap_angle
+from services.common.se2 import wrap_angle
+from services.localization.amcl import Amcl, ScanBeams
 
 Pose = tuple[float, float, float]
 

@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from services.common.bench import BenchRow, time_calls
+from services.common.robot import TwistLimits
 from services.nav.astar import AStarPlanner
 from services.nav.costmap import Costmap2D, Footprint, GlobalCostmap, InflationLayer, ObstacleLayer, StaticLayer
-from services.nav.dwa import DwaConfig, DwaPlanner, Limits
+from services.nav.dwa import DwaConfig, DwaPlanner
 from services.nav.workloads import Workload, real_map_workload, warehouse_costmap
 
 RESOLUTION = 0.05
@@ -181,7 +182,7 @@ def bench_astar() -> list[BenchRow]:
 def bench_dwa() -> list[BenchRow]:
     cm = inflated_costmap(100)
     cfg = DwaConfig(vx_samples=20, vy_samples=5, wz_samples=20, sim_time_s=1.7)
-    dwa = DwaPlanner(cfg, Limits(), Footprint(0.63))
+    dwa = DwaPlanner(cfg, TwistLimits(), Footprint(0.63))
     path = np.column_stack([np.linspace(1.0, 4.0, 61), np.full(61, 1.0), np.zeros(61)])
     pose = (1.0, 1.0, 0.0)
     res = dwa.plan(cm.master, pose, (0.1, 0.0, 0.0), path, (4.0, 1.0, 0.0), previous=(0.1, 0.0, 0.0))

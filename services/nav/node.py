@@ -25,23 +25,13 @@ from proto import messages as m
 from services.common.clock import Rate
 from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.query import QueryError
+from services.common.se2 import compose, inverse, wrap_angle
 from services.common.service import ServiceContext
 from services.nav.config import NavConfig
 from services.nav.costmap import INSCRIBED, LETHAL, NO_INFORMATION, ScanObservation
 from services.nav.navigator import TERMINAL, Navigator, PlanOutcome
 
 Pose = tuple[float, float, float]
-
-
-def compose(a: Pose, b: Pose) -> Pose:
-    """a ∘ b on SE(2): pose b given in frame a."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
-
-
-def inverse(a: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2])
 
 
 class PoseTracker:
@@ -86,7 +76,7 @@ class PoseTracker:
             return b
         t0, a = h[k - 1]
         f = (stamp - t0) / (t1 - t0) if t1 > t0 else 1.0
-        dth = math.remainder(b[2] - a[2], 2 * math.pi)
+        dth = wrap_angle(b[2] - a[2])
         return (a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * dth)
 
     def at(self, stamp: float) -> Pose | None:
@@ -182,7 +172,7 @@ async def run(ctx: ServiceContext) -> None:
         first = compose(tracker.at(msg.stamp), mount)
         last = compose(tracker.at(msg.stamp + duration), mount)
         f = np.linspace(0.0, 1.0, ranges.size)
-        dth = math.remainder(last[2] - first[2], 2 * math.pi)
+        dth = wrap_angle(last[2] - first[2])
         xs = first[0] + f * (last[0] - first[0])
         ys = first[1] + f * (last[1] - first[1])
         angles = first[2] + f * dth + msg.angle_min + np.arange(ranges.size) * msg.angle_increment
@@ -197,7 +187,7 @@ async def run(ctx: ServiceContext) -> None:
         if before is None or after is None:
             return
         jump_m = math.hypot(after[0] - before[0], after[1] - before[1])
-        jump_rad = abs(math.remainder(after[2] - before[2], 2 * math.pi))
+        jump_rad = abs(wrap_angle(after[2] - before[2]))
         if jump_m > cfg.clear_on_pose_jump_m or jump_rad > cfg.clear_on_pose_jump_rad:
             # the marks so far were placed with a pose localization now says was wrong (relocalized, kidnapped)
             nav.clear_costmaps()

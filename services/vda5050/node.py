@@ -25,6 +25,7 @@ import aiomqtt
 from proto import codec
 from proto import messages as m
 from services.common.node import QueryError
+from services.common.se2 import compose
 from services.common.service import ServiceContext
 from services.vda5050.config import Vda5050Config
 from services.vda5050.core import (
@@ -46,11 +47,6 @@ Pose = tuple[float, float, float]
 def iso_now() -> str:
     """UTC wall time as VDA 5050 writes it (ISO 8601, e.g. 2017-04-15T11:40:03.123Z)."""
     return dt.datetime.now(dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
-
-
-def compose(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
 
 
 def topic_base(cfg: Vda5050Config, serial: str) -> str:

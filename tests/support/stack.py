@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.stack_process import Stack, free_port
+from services.cli.stack_process import Stack
+from services.common.ports import free_port
 
 __all__ = ["Stack", "free_port", "stack_factory"]
 

@@ -17,7 +17,7 @@ from typing import Any
 import paho.mqtt.client as paho
 import pytest
 
-from services.cli.stack_process import free_port
+from services.common.ports import free_port
 from services.vda5050.schemas import validate
 
 MASTER_DIR = Path(__file__).resolve().parents[1] / "vda5050_master"

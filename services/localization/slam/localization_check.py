@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from services.common.se2 import transform_points, wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
@@ -22,7 +23,6 @@ from .logs import LaserLog
 from .mapper import scan_to_points
 from .occupancy import OccupancyGrid
 from .odometry_noise import OdometryNoise, corrupt_poses
-from .se2 import transform_points, wrap_angle
 
 
 @dataclass

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .se2 import between, compose, interpolate, inverse, wrap_angle
+from services.common.se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
 #: a laser further than this from the robot frame is a malformed record, not a mount

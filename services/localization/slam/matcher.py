@@ -15,8 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.se2 import transform_points, wrap_angle
+
 from .likelihood import LikelihoodGrid, MultiResolutionGrid
-from .se2 import transform_points, wrap_angle
 
 
 @dataclass
