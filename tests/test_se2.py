@@ -107,8 +107,9 @@ def test_one_definition_of_wrap_compose_and_twist_limits() -> None:
 def test_the_guard_sees_a_copy(tmp_path: Path) -> None:
     """The patterns above match the forms the copies had (so the guard can fail)."""
     forms = {
-        "angle wrap": ["def wrap(a):", "math.atan2(math.sin(t), math.cos(t))", "(a + math.pi) % (2 * math.pi) - math.pi",
-                       "math.remainder(b - a, 2 * math.pi)", "(t + math.pi) % TWO_PI - math.pi"],
+        "angle wrap": ["def wrap(a):", "math.atan2(math.sin(t), math.cos(t))",
+                       "(a + math.pi) % (2 * math.pi) - math.pi", "math.remainder(b - a, 2 * math.pi)",
+                       "(t + math.pi) % TWO_PI - math.pi"],
         "SE(2) compose": ["def compose(a, b):", "a[0] + c * b[0] - s * b[1]", "r.x + c * mx.x - s * my.y"],
         "twist limits": ["def clamp_twist(self):", "class Limits:"],
     }
