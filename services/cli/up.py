@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import importlib.util
 import os
 import random
 import signal
@@ -28,16 +27,9 @@ from services.common.lifetime import die_with_parent
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
-#: services in start order; those whose package has no __main__ yet are skipped
+#: services in start order (each is ``python -m services.<name>``)
 SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def service_available(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(f"services.{name}.__main__") is not None
-    except ModuleNotFoundError:  # no such package in this build
-        return False
 
 
 @dataclass
@@ -82,12 +74,12 @@ class StackPlan:
         return f"ws://127.0.0.1:{self.can_port}/"
 
     def services(self) -> list[str]:
-        names = [s for s in SERVICES if service_available(s)]
+        names = list(SERVICES)
         if not self.sim:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
-        if self.foxglove_port and service_available("foxglove_bridge"):  # opt-in: it opens a port
+        if self.foxglove_port:  # opt-in: it opens a port
             names.insert(len(names) - ("hmi_api" in names), "foxglove_bridge")
         if self.vda5050:
             names.append("vda5050")
@@ -158,7 +150,7 @@ def _toml_str(s: str) -> str:
 
 def render_world_map(plan: StackPlan) -> None:
     """Have the simulator write its world's map (YAML + PGM) into the run folder for localization."""
-    if not plan.sim or plan.map_yaml or not service_available("sim"):
+    if not plan.sim or plan.map_yaml:
         return
     import subprocess
 

@@ -232,7 +232,7 @@ class ModeSwitcher:
         if cfg.mode == "mapping":
             self._start_mapping((cfg.initial_pose_x, cfg.initial_pose_y, cfg.initial_pose_yaw))
         else:
-            self.nav = LocalizationNode(ctx, cfg, outputs=self.out, wire=False)
+            self.nav = LocalizationNode(ctx, cfg, outputs=self.out)
         self.node.subscribe("odom", self.on_odom)
         self.node.subscribe("scan", self.on_scan)
         self.node.queryable("localization/initial_pose", self._amcl_query(lambda n, r: n.on_initial_pose(r)))
@@ -362,7 +362,7 @@ class ModeSwitcher:
         nav_cfg = msgspec.structs.replace(self.cfg, **changes)
         self.mapping = None
         self.node.extra_stats.pop("mapping", None)
-        self.nav = LocalizationNode(self.ctx, nav_cfg, outputs=self.out, wire=False)
+        self.nav = LocalizationNode(self.ctx, nav_cfg, outputs=self.out)
         where = "" if pose is None else f" from ({pose[0]:.3f}, {pose[1]:.3f}, {pose[2]:.3f})"
         self.log.info("navigation on %s%s", path, where)
         return Reply(ok=True, message=f"navigation on {path}{where}")

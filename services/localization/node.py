@@ -9,10 +9,8 @@ pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial 
 
 from __future__ import annotations
 
-import asyncio
 import bisect
 import collections
-import contextlib
 import json
 import math
 import os
@@ -37,7 +35,7 @@ from services.common.node import Node, TopicPublisher
 from services.common.se2 import wrap_angle
 from services.common.service import ServiceContext
 from services.localization.amcl import Amcl, select_beams
-from services.localization.config import MAPPING_MODULE, LocalizationConfig, mapping_available
+from services.localization.config import LocalizationConfig
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
 from services.localization.settle import AtRestSettler
 
@@ -109,10 +107,9 @@ class Outputs:
 class LocalizationNode:
     """Wires the map and the AMCL core to Zenoh (all callbacks run on the event loop)."""
 
-    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig, *, outputs: Outputs | None = None,
-                 wire: bool = True) -> None:
-        """``outputs``: publishers shared with the mapping mode (made here when None); ``wire``: subscribe to the
-        sensors and serve the queries here (False when a mode switcher dispatches to this node)."""
+    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig, *, outputs: Outputs | None = None) -> None:
+        """``outputs``: publishers shared with the mapping mode (made here when None). The mode switcher
+        (``mapping.ModeSwitcher``) subscribes to the sensors and serves the queries, and calls ``on_*`` here."""
         self.ctx = ctx
         self.cfg = cfg
         self.node = ctx.node
@@ -133,12 +130,6 @@ class LocalizationNode:
             outputs.map, outputs.pose, outputs.tf, outputs.particles)
         self._load_map()
         self._initialise()
-        if wire:
-            self.node.subscribe("odom", self.on_odom)
-            self.node.subscribe("scan", self.on_scan)
-            self.node.queryable("localization/initial_pose", self.on_initial_pose)
-            self.node.queryable("localization/global", self.on_global)
-            self.node.queryable("localization/nomotion", self.on_nomotion)
         self.node.extra_stats["localization"] = self.stats
 
     # ------------------------------------------------------------------ map and start-up
@@ -419,29 +410,3 @@ class LocalizationNode:
             return Reply(ok=False, message="not localized yet: set an initial pose or start global localization")
         self.amcl.request_nomotion_update()
         return Reply(ok=True, message="the next scan updates the filter without motion")
-
-
-async def run(ctx: ServiceContext) -> None:
-    cfg: LocalizationConfig = ctx.config["localization"]
-    if cfg.mode == "mapping" or mapping_available():  # the mapping module also switches modes at runtime
-        import importlib
-
-        await importlib.import_module(MAPPING_MODULE).run(ctx)
-        return
-    loc = LocalizationNode(ctx, cfg)
-    ctx.node.spawn(ctx.node.ready_when(loc.readiness, ctx.stop))
-    period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else None
-    if period is None:
-        await ctx.stop.wait()
-    else:
-        while not ctx.stop.is_set():
-            stop = asyncio.ensure_future(ctx.stop.wait())
-            sleeper = asyncio.ensure_future(ctx.clock.sleep(period))
-            await asyncio.wait({stop, sleeper}, return_when=asyncio.FIRST_COMPLETED)
-            for task in (stop, sleeper):
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
-            loc.save_pose()
-    loc.save_pose()
-

@@ -38,13 +38,9 @@ from proto.messages import Clock, GroundTruth, ObstacleReply, ObstacleRequest, P
 from services.common.clock import SimClock
 from services.common.service import ServiceContext
 from services.sim.config import SimConfig
+from services.sim.lms111 import Lms111Emulator
 from services.sim.simulation import Simulation
 from services.sim.world import WorldError, load_world
-
-try:  # the emulated LMS111 lives in its own module; the sim runs without it
-    from services.sim.lms111 import Lms111Emulator
-except ImportError:  # pragma: no cover - depends on the checkout
-    Lms111Emulator = None
 
 __all__ = ["SimConfig", "run"]
 
@@ -279,19 +275,16 @@ async def run(ctx: ServiceContext) -> None:
             imu = ImuPty(sim, cfg.imu_link)
         except OSError as exc:
             node.log.error("Razor IMU disabled: cannot create %s: %s", cfg.imu_link, exc)
-    lidar = None
-    if Lms111Emulator is None:
-        node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
-    else:
-        try:
-            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
-                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
-                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
-            await lidar.start()
-        except (OSError, ValueError, TypeError) as exc:
-            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
-            lidar = None
+    lidar: Lms111Emulator | None = None
+    try:
+        # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
+        lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
+                               frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
+                               range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
+        await lidar.start()
+    except (OSError, ValueError, TypeError) as exc:
+        node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
+        lidar = None
 
     node.ready("world loaded, CAN bus and LMS111 emulation up")
     clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))

@@ -33,11 +33,9 @@ from proto.messages import (
 )
 from proto.registry import TOPICS
 from services.cli.stack_process import Stack
-from services.cli.up import service_available
 from tests.support.waiting import wait_for_sync
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow,
-              pytest.mark.skipif(not service_available("nav"), reason="needs the nav service")]
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 SERVICES = ["sim", "drive", "lidar", "localization", "nav"]
 START = (1.0, 3.2, 0.0)  # corridor world
