@@ -37,7 +37,7 @@ SPEED = 4.0  # sim seconds per wall second
 class Driver:
     """Test-side robot operator: latest clock, odom, ground truth and wheels; streams cmd_vel on the sim clock."""
 
-    def __init__(self, stack) -> None:  # noqa: ANN001 - tests.support.stack.Stack
+    def __init__(self, stack) -> None:  # tests.support.stack.Stack
         self.stack = stack
         self.session = stack.session()
         self.keys = stack.keys
@@ -60,7 +60,7 @@ class Driver:
         wait_for_sync(lambda: self.odom is not None and self.truth is not None and self.wheels is not None
                       and self.wheels.link_ok, timeout_s=30, message="drive never reported a live CAN link")
 
-    def _sub(self, name: str, t: type, cb):  # noqa: ANN001, ANN202
+    def _sub(self, name: str, t: type, cb):
         key = self.keys(name)
         return self.session.declare_subscriber(key, lambda s: cb(codec.decode_as(t, s.payload.to_bytes(), key)))
 
@@ -129,7 +129,7 @@ class Driver:
             assert time.monotonic() < deadline, "turn() did not arrive"
         self.settle(0.8)
 
-    def drive_until(self, vx: float, cond, timeout_s: float = 20.0) -> None:  # noqa: ANN001
+    def drive_until(self, vx: float, cond, timeout_s: float = 20.0) -> None:
         """Stream (vx, 0, 0) until ``cond()`` holds."""
         deadline = time.monotonic() + timeout_s
         while not cond():
@@ -275,7 +275,7 @@ def test_drive_killed_controllers_stop_through_their_watchdog(stack_factory) -> 
     keep_sending_until(d, lambda: d.speed() >= 0.15, timeout_s=30, message="no motion after the explicit enable")
 
 
-def keep_sending_until(d: Driver, cond, *, timeout_s: float, message: str) -> float:  # noqa: ANN001
+def keep_sending_until(d: Driver, cond, *, timeout_s: float, message: str) -> float:
     """Stream cmd_vel (0.2 m/s forward) until ``cond()``; returns the sim time it held."""
     deadline = time.monotonic() + timeout_s
     while not cond():
@@ -357,7 +357,7 @@ def test_estop_release_disable_enable_queries(stack_factory) -> None:
     d = Driver(stack)
     d.teleport(-4.0, 0.0, 0.0)
 
-    def keep_driving_until(cond) -> None:  # noqa: ANN001
+    def keep_driving_until(cond) -> None:
         d.drive_until(0.1, cond)
 
     keep_driving_until(lambda: d.speed() > 0.09)

@@ -84,7 +84,7 @@ async def scans(router):
         s.close()
 
 
-def log_of(proc) -> str:  # noqa: ANN001
+def log_of(proc) -> str:
     return Path(proc.log_path).read_text(errors="replace")[-3000:]
 
 
@@ -92,7 +92,7 @@ def median_period_s(msgs: list[LaserScan]) -> float:
     return float(np.median(np.diff([m.stamp for m in msgs])))
 
 
-async def start_emulator(port: int, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:  # noqa: ANN003
+async def start_emulator(port: int, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:
     clock = WallClock()
     room = CircleRoom(clock)
     emu = Lms111Emulator("127.0.0.1", port, room, clock, **kwargs)
@@ -155,7 +155,7 @@ async def lidar_in_process(router):
 
     running = []
 
-    async def start(robot_id: str, **config) -> LidarNode:  # noqa: ANN003
+    async def start(robot_id: str, **config) -> LidarNode:
         session = open_session(ZenohSettings(connect=[router]))
         node = Node("lidar", session, Keys(robot_id))
         lidar = LidarNode(node, LidarConfig(**config), Pose2D(x=0.3))

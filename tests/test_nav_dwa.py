@@ -12,7 +12,7 @@ from services.nav.costmap import LETHAL, Costmap2D, Footprint, InflationLayer
 from services.nav.dwa import DwaConfig, DwaPlanner
 
 
-def planner(**cfg) -> DwaPlanner:  # noqa: ANN003
+def planner(**cfg) -> DwaPlanner:
     return DwaPlanner(DwaConfig(**cfg), TwistLimits(), Footprint(0.3))
 
 

@@ -83,8 +83,8 @@ class KinematicSim:
             self.collided = True
 
 
-def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True, on_step=None,  # noqa: ANN001
-          stop_when=None) -> list[str]:  # noqa: ANN001
+def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True, on_step=None,
+          stop_when=None) -> list[str]:
     """Run the control loop at 20 Hz until the goal ends (or ``stop_when()``); the states seen, in order."""
     dt = 0.05
     states: list[str] = []
@@ -115,7 +115,7 @@ def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True,
 CORRIDOR = dict(free_rects=[[-2.0, -1.4, 6.0, 1.6], [-2.0, 1.6, 16.0, 4.9]], extent=[-2.5, -2.0, 16.5, 5.5])
 
 
-def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicSim]:  # noqa: ANN003
+def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicSim]:
     occ, x0, y0 = room_world(**CORRIDOR)
     nav = Navigator(NavConfig(**cfg), RobotSpec())
     nav.set_map(occ, RES, x0, y0)

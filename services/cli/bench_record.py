@@ -84,7 +84,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
     with stack.start(ready_timeout_s=300.0):
         session = stack.session()
 
-        def keep(name: str):  # noqa: ANN202
+        def keep(name: str):
             def on_sample(sample: zenoh.Sample) -> None:
                 with lock:
                     published[name].append(sample.payload.to_bytes())
@@ -124,7 +124,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
     return result
 
 
-async def _drive(sc, stack: Stack) -> list[dict]:  # noqa: ANN001 - Scenario
+async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
     initial pose of its configuration, so that a replay into a fresh localization starts from the same prior."""
     from services.cli.scenario import Client, run_goal, wait_until

@@ -162,7 +162,7 @@ def run_bench(args: argparse.Namespace) -> int:
     for path in logs:
         clean_laser = None
         for setting in settings:
-            reference = clean_laser if setting == "degraded" else None
+            reference: np.ndarray | None = clean_laser if setting == "degraded" else None
             try:
                 row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference)
             except (OSError, ValueError) as exc:

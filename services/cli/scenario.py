@@ -190,7 +190,8 @@ def load_scenario(path: str | Path) -> Scenario:
         during = int(o.get("during_goal", 1))
         if not 1 <= during <= len(goals):
             raise ScenarioError(f"{p}: dynamic_obstacles[{k}].during_goal {during} is not a goal index 1..{len(goals)}")
-        obstacles.append(DynamicObstacle(tuple(float(v) for v in rect), during, float(o.get("appear_after_s", 0.0))))
+        x0, y0, x1, y1 = (float(v) for v in rect)
+        obstacles.append(DynamicObstacle((x0, y0, x1, y1), during, float(o.get("appear_after_s", 0.0))))
     repeats = int(data.get("repeats", 1))
     speed = float(data.get("speed", 1.0))
     if repeats < 1 or not speed > 0:
@@ -306,7 +307,7 @@ def _passes_around(poses: np.ndarray, rects: list[tuple[float, float, float, flo
 class Client:
     """What the runner watches: sim clock, ground truth, nav status and path."""
 
-    def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:  # noqa: ANN001
+    def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:
         self.session, self.keys, self.loop = session, keys, loop
         self.sim_time = 0.0
         self.truth: m.GroundTruth | None = None
@@ -325,7 +326,7 @@ class Client:
         self.aborted = False
         self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
         self.localization_errors: list[tuple[float, float, float]] = []
-        self._subs = []
+        self._subs: list[Any] = []
         self._sub("clock", m.Clock, self._on_clock)
         self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
         self._sub("nav/status", m.NavStatus, self._on_status)
@@ -354,10 +355,10 @@ class Client:
         self.pose = msg
         self.pose_count += 1
 
-    def _sub(self, name: str, t: type, cb) -> None:  # noqa: ANN001
-        def on_sample(sample) -> None:  # noqa: ANN001
+    def _sub(self, name: str, t: type, cb) -> None:
+        def on_sample(sample) -> None:
             try:
-                msg = codec.decode_as(t, sample.payload.to_bytes(), str(sample.key_expr))
+                msg: Any = codec.decode_as(t, sample.payload.to_bytes(), str(sample.key_expr))
             except codec.ProtoDecodeError:
                 return
             with contextlib.suppress(RuntimeError):  # the loop already closed at the end of the run
@@ -405,7 +406,7 @@ class Client:
                 s.undeclare()
 
 
-async def wait_until(cond, what: str, timeout_s: float) -> None:  # noqa: ANN001
+async def wait_until(cond, what: str, timeout_s: float) -> None:
     """Wait (wall time) for ``cond()``; RuntimeError naming ``what`` after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
     while not cond():
@@ -492,7 +493,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         reply = await c.query("nav/goal", req)
     t0 = c.sim_time
     collisions_before = c.collisions
-    result = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
+    result: dict[str, Any] = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
               "error": [None] * 3, "time_s": 0.0, "claimed": "rejected", "nav_error": reply.reason,
               "recoveries": 0, "collisions": 0, "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
     if not reply.accepted:
@@ -552,8 +553,8 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     return result
 
 
-async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,  # noqa: ANN001
-                       progress=print, truth_yaml: str | Path | None = None,  # noqa: ANN001
+async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,
+                       progress=print, truth_yaml: str | Path | None = None,
                        ) -> tuple[list[dict], list[Leg], int, list[bool], Any]:
     """Run the mapping phase (when the scenario has one; ``truth_yaml`` is the world's ground-truth map) and the
     goals; returns (runs, plotted legs, collisions, detours per obstacle leg, MappingResult or None)."""
@@ -623,8 +624,8 @@ def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> 
         if grid is not None and grid.width:
             data = codec.array(grid, "data").reshape(grid.height, grid.width)
             img = np.where(data < 0, 0.6, 1.0 - np.clip(data, 0, 100) / 100.0)
-            ext = [grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
-                   grid.origin.y + grid.height * grid.resolution]
+            ext = (grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
+                   grid.origin.y + grid.height * grid.resolution)
             ax.imshow(img, cmap="gray", origin="lower", extent=ext, vmin=0, vmax=1)
         for r in leg.obstacles:
             ax.add_patch(plt.Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], color="orange", alpha=0.8,

@@ -187,7 +187,7 @@ class JogStats:
     max_gap_s: float = 0.0  # sim
 
 
-async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:  # noqa: ANN001
+async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:
     """Drive the route by ``cmd_vel``. RuntimeError on a collision or a waypoint not reached within a generous
     sim-time allowance. Commands that come late (the sim outruns this process) are counted in the stats."""
     pub = c.session.declare_publisher(c.keys("cmd_vel"))
@@ -257,7 +257,7 @@ class NavMapWatch:
         loop = asyncio.get_running_loop()
         self._subs = []
         for name, cb in (("map", self._on_map), ("nav/costmap", self._on_costmap)):
-            def on_sample(sample, cb=cb) -> None:  # noqa: ANN001
+            def on_sample(sample, cb=cb) -> None:
                 try:
                     msg = codec.decode_as(m.OccupancyGrid, sample.payload.to_bytes(), str(sample.key_expr))
                 except codec.ProtoDecodeError:
@@ -297,7 +297,7 @@ class NavMapWatch:
 
 
 async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, speed_mps: float,
-                      truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:  # noqa: ANN001
+                      truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:
     """The whole phase: check the route, jog it, save the map, score it, navigate on it (module docstring)."""
     from services.cli.scenario import wait_until
     from services.localization.map_io import load_map

@@ -137,7 +137,7 @@ class Stack:
 
     # ------------------------------------------------------------------ zenoh
 
-    def session(self):  # noqa: ANN201 - zenoh.Session
+    def session(self):  # zenoh.Session
         """A Zenoh client session to the stack's router (closed at teardown)."""
         s = open_session(ZenohSettings(mode="client", connect=[self.endpoint]))
         self._sessions.append(s)

@@ -163,7 +163,7 @@ def render_world_map(plan: StackPlan) -> None:
 class HealthWatch:
     """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set)."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:  # noqa: ANN001
+    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:
         self.alive: set[str] = set()
         self._on_change = on_change
         self._sub = session.liveliness().declare_subscriber(keys.health_all, self._on_sample, history=True)
@@ -180,7 +180,7 @@ class HealthWatch:
         self._sub.undeclare()
 
 
-async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:  # noqa: ANN001
+async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:
     """Run the stack until SIGINT/SIGTERM; returns the exit code."""
     loop = asyncio.get_running_loop()
     if plan.external_router:  # a client like the services: the router may stop and come back
@@ -240,7 +240,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     return code
 
 
-async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:  # noqa: ANN001
+async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:
     """Start every child, in the plan's order or (``start_seed``) in a random order with random delays."""
     specs = plan.children()
     if plan.start_seed is None:

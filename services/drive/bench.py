@@ -159,7 +159,7 @@ def watch_main(channel: str, out: str, cob_id: int) -> None:
         bus.shutdown()
 
 
-def _stats(session, keys: Keys) -> dict:  # noqa: ANN001 - zenoh.Session
+def _stats(session, keys: Keys) -> dict:  # zenoh.Session
     for reply in session.get(keys("@stats/drive"), timeout=2.0):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())

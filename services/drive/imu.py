@@ -14,6 +14,7 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from services.common.se2 import wrap_angle
 
@@ -97,7 +98,8 @@ class RazorReader:
                 self.error = str(exc)
                 self._stop.wait(self.reopen_s)
 
-    def _read_lines(self, ser) -> None:  # noqa: ANN001 - serial.Serial
+    def _read_lines(self, ser: Any) -> None:
+        """Read ``#YPRAG=`` lines from ``ser`` (a serial.Serial) until stopped."""
         buf = b""
         while not self._stop.is_set():
             chunk = ser.read(ser.in_waiting or 1)

@@ -32,7 +32,7 @@ POSE_COVARIANCE = [1e-3, 0.0, 0.0, 0.0, 1e-3, 0.0, 0.0, 0.0, 2e-3]
 TWIST_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4]
 
 
-def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,  # noqa: ANN001
+def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,
                enabled: bool | None = None) -> DriveLoop:
     """The drive's control loop from the robot spec and the [drive] table (raises ValueError on bad config);
     ``enabled`` (default ``drive.auto_enable``) is its enable state at start."""
@@ -87,8 +87,9 @@ async def run(ctx: ServiceContext) -> None:
     logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)  # our LinkError says what failed
     logging.getLogger("can").setLevel(logging.WARNING)
     node = ctx.node
-    sim = bool(getattr(ctx.clock, "is_sim", False))
-    ticker: WallTicker | SimTicker = SimTicker(cfg.rate_hz) if sim else WallTicker(cfg.rate_hz, cfg.spin_s)
+    sim = ctx.clock.is_sim
+    sim_ticker = SimTicker(cfg.rate_hz) if sim else None
+    ticker: WallTicker | SimTicker = sim_ticker or WallTicker(cfg.rate_hz, cfg.spin_s)
     if not sim:
         # the loop thread must get the GIL back quickly after its sleep: shorten the interpreter's switch interval
         sys.setswitchinterval(min(sys.getswitchinterval(), max(1e-4, 0.25 / cfg.rate_hz)))
@@ -132,8 +133,9 @@ async def run(ctx: ServiceContext) -> None:
                 log.error("cmd_vel refused: non-finite value in (vx=%r, vy=%r, wz=%r) (%d refused so far)",
                           msg.vx, msg.vy, msg.wz, loop.cmd_rejected)
 
-    if sim:
-        node.subscribe("clock", lambda c: ticker.advance(c.stamp), on_zenoh_thread=True)
+    if sim_ticker is not None:
+        advance = sim_ticker.advance
+        node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True)
     if cfg.command_source == "safety/cmd_vel":
         node.subscribe("safety/cmd_vel", on_cmd, on_zenoh_thread=True)
     else:

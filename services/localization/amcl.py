@@ -497,6 +497,7 @@ class ParticleFilter:
 
     def _likelihood_sums(self, poses: np.ndarray, n: int, out: np.ndarray) -> None:
         """Per-pose sums over the last scan's beams for poses[:n], in chunks of max_particles (buffer size)."""
+        assert self._last_beams is not None
         rc, rs, mount = self._last_beams
         chunk = self.params.max_particles
         for start in range(0, n, chunk):
@@ -777,7 +778,7 @@ class Amcl:
             raise ValueError(f"initial pose {pose} is not finite")
         self.pf.init_gaussian(pose, covariance)
         self._reinitialised()
-        self.last_good = tuple(float(v) for v in pose)
+        self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
     def global_localization(self) -> None:

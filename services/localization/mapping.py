@@ -21,6 +21,7 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -291,8 +292,8 @@ class ModeSwitcher:
 
     # ------------------------------------------------------------------ queries
 
-    def _amcl_query(self, call: Callable[[LocalizationNode, object], Reply]) -> Callable[[object], Reply]:
-        def handler(req: object) -> Reply:
+    def _amcl_query(self, call: Callable[[LocalizationNode, Any], Reply]) -> Callable[[Any], Reply]:
+        def handler(req: Any) -> Reply:
             if self.nav is None:
                 return Reply(ok=False, message="localization is mapping; switch to navigation first")
             return call(self.nav, req)

@@ -16,6 +16,7 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -24,6 +25,7 @@ from proto.messages import (
     Empty,
     InitialPoseRequest,
     LaserScan,
+    LocalizationState,
     Odometry,
     Pose2D,
     PoseArray,
@@ -120,7 +122,7 @@ class LocalizationNode:
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
         self.last_particles_at = -math.inf
-        self.stats: collections.Counter[str] = collections.Counter()
+        self.stats: dict[str, Any] = collections.Counter()  # counts, and the last verdict and reason
         self.initialised = False
         self.settler = AtRestSettler()
         self._reported_converged = False  # localizing until the estimate settled (no-motion updates at rest)
@@ -331,7 +333,8 @@ class LocalizationNode:
         state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
         spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
         self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
-                                             covariance=covariance.reshape(-1).tolist(), state=state,
+                                             covariance=covariance.reshape(-1).tolist(),
+                                             state=cast(LocalizationState, state),
                                              match_score=a.match_score, spread_m=spread))
         self.stats["state"] = state
         self.stats["reason"] = a.reason

@@ -46,7 +46,7 @@ class World:
         f, o = self.free, self.obstacles
         inside_free = ((x >= f[:, 0]) & (x < f[:, 2]) & (y >= f[:, 1]) & (y < f[:, 3])).any(axis=-1)
         inside_obstacle = ((x >= o[:, 0]) & (x < o[:, 2]) & (y >= o[:, 1]) & (y < o[:, 3])).any(axis=-1)
-        return inside_free & ~inside_obstacle
+        return np.asarray(inside_free & ~inside_obstacle)
 
     def render(self) -> OccupancyMap:
         """The world as a grid: cells whose centre is free are 0, the rest 100; origin at the extent's corner."""

@@ -208,5 +208,6 @@ class DwaPlanner:
                                    f"{c.sim_time_s:.1f} s")
         total = np.where(valid, total, np.inf)
         best = int(np.argmin(total))
-        return DwaResult(tuple(float(v) for v in twists[best]), traj[best],
+        vx, vy, wz = (float(v) for v in twists[best])
+        return DwaResult((vx, vy, wz), traj[best],
                          {k: float(v[best]) for k, v in critics.items()}, valid_samples=n_valid)

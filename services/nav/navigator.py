@@ -128,7 +128,7 @@ class Navigator:
         self.footprint = Footprint(radius, poly)
         inscribed = self.footprint.inscribed_radius_m
 
-        def costmap_layers(cc):  # noqa: ANN001, ANN202
+        def costmap_layers(cc):
             infl = InflationLayer(inscribed, cc.inflation_radius_m or robot.inflation_radius_m, cc.cost_scaling_factor)
             obs = ObstacleLayer(cc.obstacle_max_range_m, cc.raytrace_max_range_m)
             return StaticLayer(cc.lethal_threshold, cc.track_unknown), obs, infl
@@ -169,7 +169,8 @@ class Navigator:
         if m.resolution != resolution:
             n = int(round(self.config.local_costmap.size_m / resolution))
             self.local_costmap.master = Costmap2D.empty(n, n, resolution)
-            self.local_costmap.obstacles.grid = None
+            if self.local_costmap.obstacles is not None:
+                self.local_costmap.obstacles.grid = None
         self.has_map = True
 
     def add_scan(self, obs: ScanObservation) -> None:

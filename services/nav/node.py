@@ -17,6 +17,7 @@ import asyncio
 import bisect
 import math
 from collections import deque
+from typing import cast
 
 import numpy as np
 
@@ -169,8 +170,10 @@ async def run(ctx: ServiceContext) -> None:
         # the sensor pose at the first and the last beam; beams in between are placed on the line between them
         duration = msg.time_increment * (ranges.size - 1) if msg.time_increment > 0 else 0.0
         mount = (msg.mount.x, msg.mount.y, msg.mount.theta)
-        first = compose(tracker.at(msg.stamp), mount)
-        last = compose(tracker.at(msg.stamp + duration), mount)
+        at_first, at_last = tracker.at(msg.stamp), tracker.at(msg.stamp + duration)
+        if at_first is None or at_last is None:
+            return
+        first, last = compose(at_first, mount), compose(at_last, mount)
         f = np.linspace(0.0, 1.0, ranges.size)
         dth = wrap_angle(last[2] - first[2])
         xs = first[0] + f * (last[0] - first[0])
@@ -221,7 +224,7 @@ async def run(ctx: ServiceContext) -> None:
         s = nav.sequence
         goal = m.Pose2D(x=nav.last_goal_pose[0], y=nav.last_goal_pose[1], theta=nav.last_goal_pose[2]) \
             if nav.last_goal_pose else None
-        st = m.NavStatus(stamp=clock.now(), state=nav.state, goal_id=nav.last_goal_id, goal=goal,
+        st = m.NavStatus(stamp=clock.now(), state=cast(m.NavState, nav.state), goal_id=nav.last_goal_id, goal=goal,
                          distance_left_m=nav.distance_left_m if nav.state not in TERMINAL else 0.0,
                          error=nav.error, recoveries=nav.goal.recoveries if nav.goal else 0)
         if s is not None:
@@ -292,17 +295,19 @@ async def run(ctx: ServiceContext) -> None:
         """Once the map and a pose are in hand (both latched: they come whatever the start order), declare the
         queries and the health token. Until then a goal finds no queryable, and its client waits (query.py)
         instead of being refused for a map nav has not received yet."""
+        def declare() -> None:
+            node.queryable("nav/goal", on_goal)
+            node.queryable("nav/cancel", on_cancel)
+            node.queryable("nav/waypoints", on_waypoints)
+            node.queryable("nav/waypoints/control", on_control)
+            node.queryable("nav/clear_costmaps", on_clear)
+
         await node.ready_when(lambda: "map and pose" if nav.has_map and tracker.current() is not None else None,
-                              ctx.stop, declare=lambda: [node.queryable("nav/goal", on_goal),
-                                                         node.queryable("nav/cancel", on_cancel),
-                                                         node.queryable("nav/waypoints", on_waypoints),
-                                                         node.queryable("nav/waypoints/control", on_control),
-                                                         node.queryable("nav/clear_costmaps", on_clear)])
+                              ctx.stop, declare=declare)
 
     node.spawn(serve_when_ready())
 
-    if getattr(clock, "is_sim", False):
-        await clock.wait_started()  # type: ignore[attr-defined]
+    await clock.wait_started()
     loop = asyncio.get_running_loop()
     rate = Rate(clock, cfg.controller_frequency_hz)
     next_local = next_global = next_costmap_pub = next_status = next_local_pub = clock.now()
@@ -310,7 +315,7 @@ async def run(ctx: ServiceContext) -> None:
     untrusted_since: float | None = None
     plan_task: asyncio.Task | None = None
 
-    async def plan_job(req) -> None:  # noqa: ANN001
+    async def plan_job(req) -> None:
         t0 = loop.time()
         try:
             out = await loop.run_in_executor(None, nav.compute_plan, req)

@@ -91,7 +91,7 @@ async def run(ctx: ServiceContext) -> None:
     subs = []
     if cfg.blackbox:
         subs.append(node.session.declare_subscriber(node.keys.everything, on_sample))
-        node.session.get(node.keys("map"), lambda r: r.ok is not None and on_sample(r.ok), timeout=2.0)
+        node.session.get(node.keys("map"), lambda r: on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
         node.subscribe("wheels", lambda w: trigger(triggers.on_wheels(w)), msg_type=WheelStates)
         node.subscribe("nav/status", lambda s: trigger(triggers.on_nav_status(s)), msg_type=NavStatus)
         if cfg.save_on_crash:

@@ -34,7 +34,7 @@ POSES = [(0.0, 0.0, 0.0), (3.0, 3.2, 0.0), (10.0, 3.2, 0.0), (15.0, 3.0, math.pi
          (23.5, 12.0, 1.57), (26.8, 6.6, 1.0), (13.6, 3.2, -1.0)]
 
 
-def cpu_time_calls(fn, *, repeat: int = 200, warmup: int = 5, max_s: float = 5.0) -> np.ndarray:  # noqa: ANN001
+def cpu_time_calls(fn, *, repeat: int = 200, warmup: int = 5, max_s: float = 5.0) -> np.ndarray:
     """CPU time (s) of this thread for each call of ``fn``: robust to other processes competing for the cores."""
     for _ in range(warmup):
         fn()

@@ -118,7 +118,7 @@ async def run(ctx: ServiceContext) -> None:
     def on_odom(msg: m.Odometry) -> None:
         odom[0] = (msg.pose.x, msg.pose.y, msg.pose.theta)
         out = vehicle.on_velocity(msg.twist.vx, msg.twist.vy, msg.twist.wz)
-        if map_odom[0] is not None:
+        if map_odom[0] is not None and odom[0] is not None:
             out += vehicle.on_pose(*compose(map_odom[0], odom[0]))
         apply(out)
 

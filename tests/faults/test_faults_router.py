@@ -58,7 +58,7 @@ class Router:
 
 
 @pytest.fixture
-def routed(tmp_path) -> Iterator[tuple[Router, Stack, Observer]]:  # noqa: ANN001
+def routed(tmp_path) -> Iterator[tuple[Router, Stack, Observer]]:
     router = Router(free_port())
     router.start()
     run_dir = tmp_path / "run"

@@ -18,7 +18,7 @@ def stack_factory(tmp_path: Path) -> Iterator:
     """``stack_factory(services=[...], **options).start()``; every stack is stopped at teardown."""
     stacks: list[Stack] = []
 
-    def make(services: list[str] | None = None, **kwargs) -> Stack:  # noqa: ANN003
+    def make(services: list[str] | None = None, **kwargs) -> Stack:
         run_dir = tmp_path / f"stack{len(stacks)}"
         run_dir.mkdir()
         st = Stack(run_dir, services, **kwargs)

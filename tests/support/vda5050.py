@@ -159,7 +159,7 @@ class Recorder:
         self.client.subscribe(f"{base}/#")
         self.client.loop_start()
 
-    def _on_message(self, client, userdata, msg) -> None:  # noqa: ANN001
+    def _on_message(self, client, userdata, msg) -> None:
         topic = msg.topic.rsplit("/", 1)[-1]
         with self._lock:
             self.messages.append((time.monotonic(), topic, bytes(msg.payload)))

@@ -114,6 +114,7 @@ class LiveMapper:
             self._grid = slam.render_map()
             self.full_renders += 1
         else:
+            assert self._rendered_poses is not None
             for k in range(len(self._rendered_poses), n):
                 kf = slam._keyframes[k]
                 if not len(kf.map_points):

@@ -87,7 +87,7 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
             hessian = inv_var * (jac.T @ jac)
             gradient = inv_var * (jac.T @ residual)
             system = hessian + np.eye(3) * 1e-6
-            if has_prior:
+            if has_prior and prior_information is not None:
                 system += prior_information
                 gradient = gradient + prior_information @ diff
             try:
