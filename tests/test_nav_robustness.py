@@ -19,7 +19,7 @@ from services.nav.astar import planning_cost
 from services.nav.config import NavConfig
 from services.nav.costmap import LETHAL, ScanObservation
 from services.nav.navigator import Navigator, PlanRequest
-from services.nav.node import PoseTracker
+from services.nav.pose_tracker import PoseTracker
 from services.sim.world import World
 
 REPO = Path(__file__).resolve().parents[1]
