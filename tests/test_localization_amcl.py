@@ -19,7 +19,7 @@ from services.localization.amcl import (
     select_beams,
 )
 from services.localization.map_io import OccupancyMap
-from services.localization.node import OdomHistory
+from services.localization.odom_history import OdomHistory
 from services.localization.synthetic import Laser, World
 
 

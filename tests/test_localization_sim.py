@@ -77,7 +77,7 @@ async def test_amcl_tracks_the_robot_driven_along_the_table3_route(stack_factory
     """sim + drive + lidar + localization: the robot is driven by cmd_vel (a test-side P controller on the ground
     truth, within the Table 2 limits) from the start through goals 1, 2 and 3; odometry is the drive's."""
     from services.common.robot import RobotSpec
-    from services.localization.node import OdomHistory
+    from services.localization.odom_history import OdomHistory
 
     stack = stack_factory(services=["sim", "drive", "lidar", "localization"], world="corridor", speed=2.0).start()
     node = Node("loc-drive-test", stack.session(), stack.keys)

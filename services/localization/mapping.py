@@ -41,7 +41,8 @@ from proto.messages import (
 from services.common.service import ServiceContext
 from services.localization.config import LocalizationConfig
 from services.localization.map_io import MapError, OccupancyMap, load_map
-from services.localization.node import LocalizationNode, OdomHistory, Outputs
+from services.localization.node import LocalizationNode, Outputs
+from services.localization.odom_history import OdomHistory
 from services.localization.slam.live import LiveMapper
 from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map
 from services.localization.slam.mapper import SlamConfig, scan_to_points

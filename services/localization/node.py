@@ -9,11 +9,8 @@ pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial 
 
 from __future__ import annotations
 
-import bisect
 import collections
-import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -34,56 +31,21 @@ from proto.messages import (
     Transform2D,
 )
 from services.common.node import Node, TopicPublisher
-from services.common.se2 import wrap_angle
 from services.common.service import ServiceContext
 from services.localization.amcl import Amcl, select_beams
 from services.localization.config import LocalizationConfig
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
+from services.localization.odom_history import OdomHistory
+from services.localization.pose_store import (
+    POSE_FILE,
+    SavedPoseIgnored,
+    read_saved_pose,
+    should_save,
+    write_pose,
+)
 from services.localization.settle import AtRestSettler
 
-POSE_FILE = "localization_pose.json"
 Pose = tuple[float, float, float]
-
-
-class OdomHistory:
-    """Recent odometry poses by stamp; ``at(t)`` interpolates (x, y linearly, theta along the shorter arc)."""
-
-    def __init__(self, keep_s: float) -> None:
-        self.keep_s = keep_s
-        self.stamps: collections.deque[float] = collections.deque()
-        self.poses: collections.deque[Pose] = collections.deque()
-
-    def add(self, stamp: float, pose: Pose) -> None:
-        if self.stamps and stamp <= self.stamps[-1]:
-            if stamp < self.stamps[-1] - self.keep_s:  # the clock went back (sim restart): start over
-                self.stamps.clear()
-                self.poses.clear()
-            else:
-                return
-        self.stamps.append(stamp)
-        self.poses.append(pose)
-        while self.stamps and self.stamps[0] < stamp - self.keep_s:
-            self.stamps.popleft()
-            self.poses.popleft()
-
-    @property
-    def latest_stamp(self) -> float | None:
-        return self.stamps[-1] if self.stamps else None
-
-    def at(self, t: float, tolerance_s: float) -> Pose | None:
-        """Odom pose at ``t``; None when ``t`` is outside the history by more than ``tolerance_s``."""
-        if not self.stamps:
-            return None
-        if t >= self.stamps[-1]:
-            return self.poses[-1] if t - self.stamps[-1] <= tolerance_s else None
-        if t <= self.stamps[0]:
-            return self.poses[0] if self.stamps[0] - t <= tolerance_s else None
-        i = bisect.bisect_right(self.stamps, t)
-        t0, t1 = self.stamps[i - 1], self.stamps[i]
-        p0, p1 = self.poses[i - 1], self.poses[i]
-        f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
-        return (p0[0] + f * (p1[0] - p0[0]), p0[1] + f * (p1[1] - p0[1]),
-                float(wrap_angle(p0[2] + f * float(wrap_angle(p1[2] - p0[2])))))
 
 
 def _finite(*values: float) -> bool:
@@ -191,39 +153,24 @@ class LocalizationNode:
         return "map loaded, filter initialised"
 
     def _read_saved_pose(self) -> tuple[Pose, np.ndarray] | None:
-        if self.pose_file is None or not self.pose_file.is_file():
+        if self.pose_file is None:
             return None
         try:
-            data = json.loads(self.pose_file.read_text())
-            if data.get("map_yaml") != str(Path(self.cfg.map_yaml).resolve()):
-                self.log.info("saved pose in %s belongs to another map; not used", self.pose_file)
-                return None
-            pose = (float(data["x"]), float(data["y"]), float(data["theta"]))
-            cov = np.asarray(data["covariance"], dtype=float).reshape(3, 3)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            self.log.warning("ignoring unreadable saved pose %s: %s", self.pose_file, exc)
+            return read_saved_pose(self.pose_file, self.cfg.map_yaml)
+        except SavedPoseIgnored as exc:
+            self.log.log(exc.level, "%s", exc)
             return None
-        if not _finite(*pose) or not np.all(np.isfinite(cov)):
-            self.log.warning("ignoring non-finite saved pose in %s", self.pose_file)
-            return None
-        # a restart may follow a move by hand: never trust the saved spread below a few centimetres
-        cov = cov + np.diag([0.05 ** 2, 0.05 ** 2, 0.05 ** 2])
-        return pose, cov
 
     def save_pose(self) -> None:
-        """Write the current estimate atomically to the state folder (no-op without one, or while the filter does
-        not trust it: a lost pose must not become the next start's initial pose)."""
-        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None or self.amcl.state != "tracking":
+        """Write the current estimate to the state folder (no-op without one, or while the filter does not trust
+        it: pose_store.py)."""
+        amcl = self.amcl
+        if self.pose_file is None or amcl is None or amcl.estimate is None \
+                or not should_save(amcl.state, amcl.estimate is not None):
             return
-        est = self.amcl.estimate
-        data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
-                "theta": est.pose[2], "covariance": est.covariance.reshape(-1).tolist(),
-                "stamp": self.ctx.clock.now()}
         try:
-            self.pose_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.pose_file.with_suffix(".tmp")
-            tmp.write_text(json.dumps(data))
-            os.replace(tmp, self.pose_file)
+            write_pose(self.pose_file, self.cfg.map_yaml, amcl.estimate.pose, amcl.estimate.covariance,
+                       self.ctx.clock.now())
         except OSError as exc:
             self.stats["pose_save_errors"] += 1
             self.log.warning("cannot save the pose to %s: %s", self.pose_file, exc)
