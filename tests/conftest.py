@@ -33,7 +33,7 @@ def router(free_port: int) -> Iterator[str]:
 
 @pytest.fixture
 def shared_dir() -> Path:
-    """The project's development data (../shared); skipped with a message where it is absent."""
+    """The development data folder (ZAGV_SHARED); skipped with a message where it is absent."""
     if not (SHARED / "data").is_dir():
         pytest.skip(f"development data not found at {SHARED} (set ZAGV_SHARED); a user checkout has none")
     return SHARED
