@@ -39,4 +39,4 @@ schema: install
 	$(BIN)/python -m proto.schema
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache
