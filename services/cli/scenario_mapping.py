@@ -30,7 +30,7 @@ from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
 
 if TYPE_CHECKING:
-    from services.cli.scenario import Client
+    from services.cli.scenario_client import Client
 
 Pose = tuple[float, float, float]
 
@@ -299,7 +299,7 @@ class NavMapWatch:
 async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, speed_mps: float,
                       truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:
     """The whole phase: check the route, jog it, save the map, score it, navigate on it (module docstring)."""
-    from services.cli.scenario import wait_until
+    from services.cli.scenario_client import wait_until
     from services.localization.map_io import load_map
 
     check_route(start, route, truth_yaml, spec)
