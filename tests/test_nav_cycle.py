@@ -10,6 +10,7 @@ import pytest
 
 from proto import messages as m
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 from services.nav.config import NavConfig
 from services.nav.cycle import NavCycle
 from services.nav.navigator import Navigator
@@ -50,7 +51,7 @@ def test_odom_is_interpolated_along_the_shorter_arc_and_scans_are_placed_per_bea
     t.on_odom(odom(1.0, 1.0, 0.0, -3.0))
     mid = t.odom_at(0.5)
     assert mid is not None and mid[0] == pytest.approx(0.5)
-    assert abs(math.remainder(mid[2] - math.pi, math.tau)) < 1e-9  # through pi, not through 0
+    assert abs(wrap_angle(mid[2] - math.pi)) < 1e-9  # through pi, not through 0
     assert t.odom_at(1.5) is None
     t.on_tf(m.Transform2D(stamp=1.0, x=0.0, y=0.0, theta=0.0))
     scan = m.LaserScan(stamp=0.0, angle_min=0.0, angle_increment=0.1, time_increment=0.5, range_min=0.1,
