@@ -88,6 +88,13 @@ def all_tracking(client: HmiClient, ids: list[str]) -> bool:
                and robots[rid]["pose"] is not None for rid in ids)
 
 
+def wait_js(page, expression: str, timeout_s: float) -> None:  # noqa: ANN001 - a playwright Page
+    """Poll a JavaScript expression through the DevTools protocol (page.evaluate) until it is true: the page's CSP
+    forbids eval, which Playwright's own wait_for_function predicates need."""
+    wait_for_sync(lambda: page.evaluate(f"() => Boolean({expression})"), timeout_s=timeout_s, poll_s=0.1,
+                  message=f"never true in the page: {expression}")
+
+
 def distance(a: tuple[float, ...] | None, b: tuple[float, ...]) -> float:
     return math.hypot(a[0] - b[0], a[1] - b[1]) if a is not None else math.inf
 
@@ -117,8 +124,8 @@ def test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot(site_fact
             page.fill("#login-password", site.fleet_password())
             page.click("#login-btn")
             # every robot drawn on the map (the canvas lists what it drew) and listed as at the site
-            page.wait_for_function("document.querySelector('#map').dataset.drawn === 'r1,r2'", timeout=30_000)
-            page.wait_for_function("window.fleetView.state.map !== null", timeout=30_000)
+            wait_js(page, "document.querySelector('#map').dataset.drawn === 'r1,r2'", 30)
+            wait_js(page, "window.fleetView.state.map !== null", 30)
             for rid in ids:
                 assert "at the site" in page.inner_text(f"li[data-robot={rid}] .meta")
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
@@ -128,18 +135,16 @@ def test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot(site_fact
                                  " return window.fleetView.worldToCanvas(p.x, p.y); }")
             box = page.locator("#map").bounding_box()
             page.mouse.click(box["x"] + x, box["y"] + y)
-            page.wait_for_function("document.querySelector('#selected').textContent === 'r2'", timeout=10_000)
+            wait_js(page, "document.querySelector('#selected').textContent === 'r2'", 10)
             gx, gy, gth = GOALS["r2"]
             page.fill("#goal-x", str(gx))
             page.fill("#goal-y", str(gy))
             page.fill("#goal-theta", str(math.degrees(gth)))
             page.click("#btn-goal")
-            page.wait_for_function("document.querySelector('#message').textContent.includes('accepted')",
-                                   timeout=20_000)
+            wait_js(page, "document.querySelector('#message').textContent.includes('accepted')", 20)
             wait_for_sync(lambda: distance(site.true_pose("r2"), GOALS["r2"]) < REACHED_M, timeout_s=120, poll_s=0.1,
                           message=f"r2 never reached its goal: at {site.true_pose('r2')}")
-            page.wait_for_function(
-                "document.querySelector('li[data-robot=r2] .meta').dataset.nav === 'succeeded'", timeout=30_000)
+            wait_js(page, "document.querySelector('li[data-robot=r2] .meta').dataset.nav === 'succeeded'", 30)
             page.screenshot(path=str(ARTIFACTS / "fleet-r2-arrived.png"))
             assert not errors, f"JavaScript errors: {errors}"
         finally:
