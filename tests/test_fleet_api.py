@@ -37,12 +37,15 @@ from proto.messages import (
 from proto.messages import Path as PathMsg
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from tests.support.browser import ARTIFACTS as BROWSER_ARTIFACTS
+from tests.support.browser import CHROMIUM, CHROMIUM_ARGS, click_robot, sync_playwright_or_skip, wait_js
 from tests.support.hmi import HmiClient
 from tests.support.site import Process, router_config
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
+ARTIFACTS = BROWSER_ARTIFACTS / "fleet"
 
 
 class StandIns:
@@ -252,6 +255,66 @@ def test_a_refusal_is_409_with_the_robots_reason(fleet) -> None:
         assert r.status_code == 409 and "no route" in r.json()["detail"]
     finally:
         robots.refuse.discard("r1")
+
+
+@pytest.mark.browser
+def test_the_page_draws_every_robot_and_sends_goals_to_the_one_picked(fleet) -> None:
+    """Debian chromium: log in, both robots drawn on the map, r2 picked by a click on its footprint; a goal from the
+    form and a pose list from two map clicks reach r2 only."""
+    sync_api = sync_playwright_or_skip()
+    client, password, robots = fleet
+    if not client.token:
+        client.login(password)
+
+    def both_drawable() -> bool:
+        robots.publish()
+        doc = fleet_doc(client)
+        return all(doc.get(r, {}).get("present") and doc[r]["pose"] for r in ("r1", "r2"))
+
+    wait_for_sync(both_drawable, timeout_s=30, poll_s=0.1, message="the robots never showed up")
+    goals_before = {r: len(robots.received(f"agv/{r}/nav/goal")) for r in ("r1", "r2")}
+    lists_before = {r: len(robots.received(f"agv/{r}/nav/waypoints")) for r in ("r1", "r2")}
+    with sync_api.sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1024, "height": 768})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(str(client.base_url) + "/")
+            page.fill("#login-password", password)
+            page.click("#login-btn")
+            wait_js(page, "document.querySelector('#map').dataset.drawn === 'r1,r2'", 30)
+            wait_js(page, "window.fleetView.state.map !== null", 30)
+            assert "battery ?" not in page.inner_text("li[data-robot=r2] .meta")
+            assert "drive: overcurrent" in page.inner_text("li[data-robot=r2] .faults")
+            click_robot(page, "r2")
+            wait_js(page, "document.querySelector('#selected').textContent === 'r2'", 10)
+            page.fill("#goal-x", "1.25")
+            page.fill("#goal-y", "0.5")
+            page.fill("#goal-theta", "90")
+            page.click("#btn-goal")
+            wait_js(page, "document.querySelector('#message').textContent.includes('accepted')", 20)
+            # a pose list: two clicks on free map cells in pose-list mode, then send
+            page.check("#pose-mode")
+            box = page.locator("#map").bounding_box()
+            for wx, wy in ((0.5, 1.5), (1.0, 1.8)):  # clear of both footprints (a click on one picks it)
+                x, y = page.evaluate(f"() => window.fleetView.worldToCanvas({wx}, {wy})")
+                page.mouse.click(box["x"] + x, box["y"] + y)
+            wait_js(page, "document.querySelector('#pose-count').textContent === '2'", 10)
+            page.click("#btn-send-poses")
+            wait_js(page, "document.querySelector('#message').textContent.includes('pose list')", 20)
+            ARTIFACTS.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "fleet-stand-ins.png"))
+            assert not errors, f"JavaScript errors: {errors}"
+        finally:
+            browser.close()
+    goals = robots.received("agv/r2/nav/goal")[goals_before["r2"]:]
+    assert len(goals) == 1 and goals[0].pose.x == pytest.approx(1.25) and goals[0].pose.y == pytest.approx(0.5)
+    assert goals[0].pose.theta == pytest.approx(math.pi / 2, abs=1e-6)
+    (sequence,) = robots.received("agv/r2/nav/waypoints")[lists_before["r2"]:]
+    assert [(round(w.pose.x, 1), round(w.pose.y, 1)) for w in sequence.waypoints] == [(0.5, 1.5), (1.0, 1.8)]
+    assert len(robots.received("agv/r1/nav/goal")) == goals_before["r1"], "r1 was not picked"
+    assert len(robots.received("agv/r1/nav/waypoints")) == lists_before["r1"], "r1 was not picked"
 
 
 def test_a_robot_that_leaves_is_shown_away_and_back(fleet) -> None:

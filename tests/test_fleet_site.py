@@ -1,6 +1,9 @@
 """The fleet view on a site of simulated robots (tests/support/site.py): one router per robot linked to a site
 router, each robot its own simulated stack, the fleet service on the site router.
 
+Both are ``long`` (whole robot stacks; `make test-long`); tests/test_fleet_api.py keeps the fleet view's API and
+page in ``make test`` against stand-in robots.
+
 - ``test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot`` (browser, 2 robots): Debian chromium
   through Playwright logs in, sees every robot drawn on the shared map, picks one robot and sends it a goal; that
   robot arrives (ground truth) and the other does not move.
@@ -12,8 +15,6 @@ router, each robot its own simulated stack, the fleet service on the site router
 from __future__ import annotations
 
 import math
-import os
-import shutil
 import threading
 import time
 from collections.abc import Iterator
@@ -24,16 +25,15 @@ import pytest
 
 from proto import codec
 from proto.messages import NavStatus
+from tests.support.browser import ARTIFACTS as BROWSER_ARTIFACTS
+from tests.support.browser import CHROMIUM, CHROMIUM_ARGS, click_robot, sync_playwright_or_skip, wait_js
 from tests.support.hmi import HmiClient, full_stack_available, missing_services
 from tests.support.site import RobotPlan, Site
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
 
-CHROMIUM = os.environ.get("ZAGV_CHROMIUM", "/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync"]
-ARTIFACTS = Path(os.environ.get("ZAGV_ARTIFACTS", Path(__file__).resolve().parents[1] / "artifacts")) / "fleet"
+ARTIFACTS = BROWSER_ARTIFACTS / "fleet"
 #: start poses in the corridor world: the lobby, and two places along the main corridor
 STARTS = {"r1": (0.0, 0.0, 0.0), "r2": (8.0, 3.2, 0.0), "r3": (16.0, 3.2, 0.0)}
 #: a goal per robot, 1.5-3 m ahead along free space
@@ -88,25 +88,15 @@ def all_tracking(client: HmiClient, ids: list[str]) -> bool:
                and robots[rid]["pose"] is not None for rid in ids)
 
 
-def wait_js(page, expression: str, timeout_s: float) -> None:  # noqa: ANN001 - a playwright Page
-    """Poll a JavaScript expression through the DevTools protocol (page.evaluate) until it is true: the page's CSP
-    forbids eval, which Playwright's own wait_for_function predicates need."""
-    wait_for_sync(lambda: page.evaluate(f"() => Boolean({expression})"), timeout_s=timeout_s, poll_s=0.1,
-                  message=f"never true in the page: {expression}")
-
-
 def distance(a: tuple[float, ...] | None, b: tuple[float, ...]) -> float:
     return math.hypot(a[0] - b[0], a[1] - b[1]) if a is not None else math.inf
 
 
 @pytest.mark.browser
+@pytest.mark.long
+@pytest.mark.timeout(1200)  # two full simulated robots: minutes on a loaded machine
 def test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot(site_factory) -> None:
-    if not (Path(CHROMIUM).exists() or shutil.which(CHROMIUM)):
-        message = f"chromium not found at {CHROMIUM} (apt-get install chromium, or set ZAGV_CHROMIUM)"
-        if os.environ.get("CI") == "true":
-            pytest.fail(message + "; CI=true requires the browser tests to run")
-        pytest.skip(message)
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is in the dev extra")
+    sync_api = sync_playwright_or_skip()
     ids = ["r1", "r2"]
     site = site_factory(ids)
     client = fleet_client(site)
@@ -131,10 +121,7 @@ def test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot(site_fact
             ARTIFACTS.mkdir(parents=True, exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "fleet-two-robots.png"))
             # pick r2 on the map itself: a click on its footprint selects it
-            x, y = page.evaluate("() => { const p = window.fleetView.state.fleet.robots.find(r => r.id === 'r2').pose;"
-                                 " return window.fleetView.worldToCanvas(p.x, p.y); }")
-            box = page.locator("#map").bounding_box()
-            page.mouse.click(box["x"] + x, box["y"] + y)
+            click_robot(page, "r2")
             wait_js(page, "document.querySelector('#selected').textContent === 'r2'", 10)
             gx, gy, gth = GOALS["r2"]
             page.fill("#goal-x", str(gx))
@@ -157,6 +144,7 @@ def test_fleet_view_draws_every_robot_and_a_goal_moves_only_that_robot(site_fact
 
 
 @pytest.mark.long
+@pytest.mark.timeout(1800)  # three full simulated robots
 def test_robots_finish_their_goals_without_the_site_router(site_factory) -> None:
     ids = ["r1", "r2", "r3"]
     site = site_factory(ids)

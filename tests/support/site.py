@@ -175,14 +175,15 @@ class Site:
             with contextlib.suppress(Exception):  # already closed
                 s.close()
         self._sessions.clear()
-        if self.fleet:
-            self.fleet.stop()
-        for stack in self.stacks.values():
-            stack.stop()
-        for router in self.routers.values():
+        # every stack and process at once: each may take seconds to stop on a loaded machine
+        stoppers = [*(s.stop for s in self.stacks.values()), *(p.stop for p in [self.fleet] if p)]
+        threads = [threading.Thread(target=stop) for stop in stoppers]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for router in [*self.routers.values(), *([self.site_router] if self.site_router else [])]:
             router.stop()
-        if self.site_router:
-            self.site_router.stop()
 
     # ------------------------------------------------------------------ access
 
