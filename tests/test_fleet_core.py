@@ -19,7 +19,7 @@ from proto.messages import (
     Transform2D,
     WheelStates,
 )
-from services.fleet.core import FleetView, battery_percent, compose, decimated_path
+from services.fleet.core import FleetView, battery_percent, decimated_path
 
 BATTERY = (44.0, 52.0)
 
@@ -56,7 +56,6 @@ def test_the_map_pose_composes_map_odom_with_odometry_as_the_robot_hmi_does() ->
     pose = snapshot(view)["r1"]["pose"]
     assert (pose["x"], pose["y"], pose["theta"]) == pytest.approx((2.0, 2.0, math.pi / 2 + 0.5), abs=1e-4)
     assert pose["frame"] == "map"
-    assert compose((0, 0, math.pi), (0, 0, math.pi))[2] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_battery_faults_state_and_path() -> None:

@@ -154,7 +154,7 @@ def test_robots_finish_their_goals_without_the_site_router(site_factory) -> None
     nav: dict[str, NavStatus] = {}
     lock = threading.Lock()
     for rid in ids:  # watched on each robot's own router: it must not depend on the site router
-        def on_status(sample, rid=rid) -> None:  # noqa: ANN001
+        def on_status(sample, rid=rid) -> None:
             with lock:
                 nav[rid] = codec.decode_as(NavStatus, sample.payload.to_bytes(), str(sample.key_expr))
         site.robot_session(rid).declare_subscriber(f"agv/{rid}/nav/status", on_status)

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from proto.messages import OccupancyGrid
+
 #: yaw below this (rad) is treated as axis aligned
 YAW_EPS_RAD = 1e-9
 
@@ -41,7 +43,7 @@ def axis_aligned(data: np.ndarray, resolution: float, origin: tuple[float, float
     return out, x0, y0
 
 
-def grid_png(grid) -> bytes:  # noqa: ANN001 - a proto OccupancyGrid
+def grid_png(grid: OccupancyGrid) -> bytes:
     """An OccupancyGrid as a greyscale PNG, north up: row 0 of the image is the grid's last row (largest y).
 
     Free (0) is white, occupied (100) black, unknown (-1) grey, values in between shaded linearly.

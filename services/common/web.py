@@ -79,15 +79,15 @@ def host_name(host_header: str) -> str:
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
 
 
-def security_layer(allowed_hosts: list[str]):  # noqa: ANN201 - an ASGI middleware factory
+def security_layer(allowed_hosts: list[str]):
     """ASGI middleware: refuse a Host outside ``allowed_hosts`` (400, DNS rebinding; WebSockets too) and add
     ``SECURITY_HEADERS`` to every HTTP response, error responses and static files included."""
     allowed = {h.lower() for h in allowed_hosts}
     extra = [(k.encode(), v.encode()) for k, v in SECURITY_HEADERS.items()]
     refusal = msgspec.json.encode({"status_code": 400, "detail": "Host header not allowed (hmi_api.allowed_hosts)"})
 
-    def factory(app):  # noqa: ANN001, ANN202
-        async def middleware(scope, receive, send) -> None:  # noqa: ANN001
+    def factory(app):
+        async def middleware(scope, receive, send) -> None:
             if scope["type"] not in ("http", "websocket"):
                 await app(scope, receive, send)
                 return
@@ -104,7 +104,7 @@ def security_layer(allowed_hosts: list[str]):  # noqa: ANN201 - an ASGI middlewa
                 await app(scope, receive, send)
                 return
 
-            async def send_with_headers(message) -> None:  # noqa: ANN001
+            async def send_with_headers(message) -> None:
                 if message["type"] == "http.response.start":
                     names = {k.lower() for k, _ in message.get("headers", [])}
                     message["headers"] = [*message.get("headers", []), *(h for h in extra if h[0] not in names)]

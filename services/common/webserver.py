@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+from typing import Any
 
 import uvicorn
 
@@ -12,7 +13,7 @@ class LoopServer(uvicorn.Server):
     """uvicorn on the service's own loop; signals stay with ``service_main`` (which sets ``ctx.stop``)."""
 
     @contextlib.contextmanager
-    def capture_signals(self):  # noqa: ANN201 - uvicorn's contract
+    def capture_signals(self):
         yield
 
 
@@ -31,8 +32,8 @@ def listen_socket(host: str, port: int, service: str) -> socket.socket:
     return sock
 
 
-def server(app, tls_certificate: str, tls_private_key: str) -> LoopServer:  # noqa: ANN001 - an ASGI app
+def server(app: Any, tls_certificate: str, tls_private_key: str) -> LoopServer:
     """A LoopServer for ``app``: no lifespan, no access log, HTTPS when a certificate is given."""
-    tls = {"ssl_certfile": tls_certificate, "ssl_keyfile": tls_private_key} if tls_certificate else {}
     return LoopServer(uvicorn.Config(app, lifespan="off", log_config=None, log_level="warning", access_log=False,
-                                     ws="websockets-sansio", ws_ping_interval=None, **tls))
+                                     ws="websockets-sansio", ws_ping_interval=None,
+                                     ssl_certfile=tls_certificate or None, ssl_keyfile=tls_private_key or None))

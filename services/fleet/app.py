@@ -217,7 +217,7 @@ async def index() -> Response[bytes]:
     return Response((STATIC_DIR / "index.html").read_bytes(), media_type=MediaType.HTML)
 
 
-def create_asgi_app(backend: FleetBackend):  # noqa: ANN201 - an ASGI application
+def create_asgi_app(backend: FleetBackend):
     """The Litestar app inside the security layer (Host allow-list, security headers)."""
     api = Router(path="/api", guards=[require_token], before_request=strict_body,
                  route_handlers=[logout, fleet, map_json, map_png, robot_goal, robot_poses, robot_cancel, robot_estop,

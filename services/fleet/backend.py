@@ -91,7 +91,7 @@ class FleetBackend:
 
     # ------------------------------------------------------------------ robots' messages
 
-    def _sample_handler(self, topic: str):  # noqa: ANN202 - a zenoh callback
+    def _sample_handler(self, topic: str):
         msg_type = codec.topic_type(topic)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -128,7 +128,7 @@ class FleetBackend:
         for topic in LATCHED:
             handler = self._sample_handler(topic)
 
-            def on_reply(reply: zenoh.Reply, handler=handler) -> None:  # noqa: ANN001
+            def on_reply(reply: zenoh.Reply, handler=handler) -> None:
                 if reply.ok is not None:
                     handler(reply.ok)
 

@@ -29,6 +29,7 @@ from proto.messages import (
     Transform2D,
     WheelStates,
 )
+from services.common.se2 import compose
 
 #: topic (after ``agv/<id>/``) -> attribute of RobotTrack it updates
 TOPICS: dict[str, str] = {"odom": "odom", "tf/map_odom": "map_odom", "pose": "pose", "wheels": "wheels",
@@ -42,13 +43,6 @@ EVENTS_KEPT = 50
 def finite(v: float, digits: int = 4) -> float | None:
     """``v`` rounded, or None when it is NaN or infinite (JSON has no NaN)."""
     return round(float(v), digits) if math.isfinite(v) else None
-
-
-def compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """SE(2) composition a ∘ b of (x, y, theta) poses."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    th = a[2] + b[2]
-    return a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], math.atan2(math.sin(th), math.cos(th))
 
 
 def battery_percent(volts: float, empty_v: float, full_v: float) -> float:

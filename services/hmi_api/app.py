@@ -211,7 +211,7 @@ async def robot_info(request: Request) -> dict:
             "jog_timeout_s": c.jog_timeout_s, "ws_rate_hz": c.ws_rate_hz}
 
 
-def _drive_handler(action: str, summary: str):  # noqa: ANN202 - a Litestar route handler
+def _drive_handler(action: str, summary: str):  # a Litestar route handler
     async def handler(request: Request) -> ActionReply:
         b = _backend(request)
         reply = await (b.estop() if action == "estop" else b.drive(action))
@@ -339,6 +339,7 @@ async def poses_add(request: Request, data: PoseCreate) -> PoseRecord:
         missing = [k for k in ("x", "y", "theta") if getattr(data, k) is None]
         if missing:
             raise ValidationException(f"missing {', '.join(missing)} (or send from_current: true)")
+        assert data.x is not None and data.y is not None and data.theta is not None
         x, y, theta = data.x, data.y, data.theta
     return await b.db_call(b.db.add, data.name, x, y, theta)
 
@@ -490,7 +491,7 @@ async def index() -> Response[bytes]:
     return Response((STATIC_DIR / "index.html").read_bytes(), media_type=MediaType.HTML)
 
 
-def create_asgi_app(backend: Backend):  # noqa: ANN201 - an ASGI application
+def create_asgi_app(backend: Backend):  # an ASGI application
     """The Litestar app inside the security layer (Host allow-list, security headers), which also covers requests
     that match no route."""
     return security_layer(backend.config.host_allow_list())(create_app(backend))

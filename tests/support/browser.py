@@ -16,7 +16,7 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic"
 ARTIFACTS = Path(os.environ.get("ZAGV_ARTIFACTS", Path(__file__).resolve().parents[2] / "artifacts"))
 
 
-def sync_playwright_or_skip():  # noqa: ANN201 - the playwright.sync_api module
+def sync_playwright_or_skip():
     """playwright's sync API, or a skip naming what is missing (a failure for chromium under CI=true)."""
     if not (Path(CHROMIUM).exists() or shutil.which(CHROMIUM)):
         message = f"chromium not found at {CHROMIUM} (apt-get install chromium, or set ZAGV_CHROMIUM)"
@@ -26,14 +26,14 @@ def sync_playwright_or_skip():  # noqa: ANN201 - the playwright.sync_api module
     return pytest.importorskip("playwright.sync_api", reason="playwright is in the dev extra")
 
 
-def wait_js(page, expression: str, timeout_s: float) -> None:  # noqa: ANN001 - a playwright Page
+def wait_js(page, expression: str, timeout_s: float) -> None:
     """Poll a JavaScript expression through the DevTools protocol (page.evaluate) until it is true: the pages' CSP
     forbids eval, which Playwright's own wait_for_function predicates need."""
     wait_for_sync(lambda: page.evaluate(f"() => Boolean({expression})"), timeout_s=timeout_s, poll_s=0.1,
                   message=f"never true in the page: {expression}")
 
 
-def click_robot(page, robot_id: str) -> None:  # noqa: ANN001 - a playwright Page
+def click_robot(page, robot_id: str) -> None:
     """Click the fleet view's map on ``robot_id``'s drawn footprint."""
     x, y = page.evaluate("(id) => { const p = window.fleetView.state.fleet.robots.find(r => r.id === id).pose;"
                          " return window.fleetView.worldToCanvas(p.x, p.y); }", robot_id)

@@ -24,7 +24,8 @@ import zenoh
 
 from proto import codec
 from proto.messages import GroundTruth
-from services.cli.stack_process import REPO_ROOT, Stack, free_port
+from services.cli.stack_process import REPO_ROOT, Stack
+from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from tests.support.waiting import wait_for_sync
@@ -201,7 +202,7 @@ class Site:
         self._sessions.append(s)
         return s
 
-    def _truth_handler(self, robot_id: str):  # noqa: ANN202 - a zenoh callback
+    def _truth_handler(self, robot_id: str):
         def on_sample(sample: zenoh.Sample) -> None:
             msg = codec.decode_as(GroundTruth, sample.payload.to_bytes(), str(sample.key_expr))
             with self._truth_lock:
