@@ -302,3 +302,35 @@ def test_systemd_rates_every_service_unit_well_hardened(venv: Path, tmp_path: Pa
         match = re.search(r"Overall exposure level for \S+: (\d+(?:\.\d+)?)", result.stdout)
         assert match, result.stdout[-500:] + result.stderr
         assert float(match.group(1)) < 3.0, f"{path.name}: exposure {match.group(1)}"
+
+
+def test_the_site_servers_units_run_its_router_and_the_fleet_view(venv: Path, tmp_path: Path) -> None:
+    """``install-units --site``: the site router and the fleet view under zagv-site.target, as hardened as a robot's
+    units; systemd accepts them and the fleet's command line passes --check-config with the example site file."""
+    repo = Path(__file__).resolve().parents[1]
+    opts = options(venv, site=True, config="/etc/zagv/site.toml",
+                   zenoh_config="/etc/zagv/zenoh/site-router-tls.json5")
+    texts = render_units(opts)
+    assert sorted(texts) == ["zagv-fleet.service", "zagv-site-router.service", "zagv-site.target"]
+    assert all("@@" not in text for text in texts.values())
+    units = {name: parse_unit(text) for name, text in texts.items()}
+    assert words(units["zagv-site.target"], "Unit", "Wants") == ["zagv-site-router.service", "zagv-fleet.service"]
+    router = units["zagv-site-router.service"]
+    assert one(router, "Service", "ExecStart").endswith("router --config /etc/zagv/zenoh/site-router-tls.json5")
+    fleet = units["zagv-fleet.service"]
+    assert one(fleet, "Unit", "After") == "zagv-site-router.service"
+    assert one(fleet, "Service", "StateDirectory") == "zagv/fleet"
+    for unit in (router, fleet):
+        assert one(unit, "Service", "NoNewPrivileges") == "yes" and one(unit, "Install", "WantedBy") == \
+            "zagv-site.target"
+    argv = one(fleet, "Service", "ExecStart").replace("${STATE_DIRECTORY}", str(tmp_path)).split()
+    argv[argv.index("--config") + 1] = str(repo / "deploy" / "site.example.toml")
+    argv[0] = sys.executable
+    result = subprocess.run([*argv, "--check-config"], capture_output=True, text=True, timeout=120, cwd=repo,
+                            env={**os.environ, "PYTHONPATH": str(repo)})
+    assert result.returncode == 0, result.stdout + result.stderr
+    dest = tmp_path / "units"
+    install_units.write_units(texts, dest)
+    verified = systemd_analyze_verify(dest)
+    assert verified.returncode == 0, verified.stdout + verified.stderr
+    assert not [line for line in (verified.stdout + verified.stderr).splitlines() if "zagv" in line]

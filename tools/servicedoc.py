@@ -24,6 +24,7 @@ from proto.registry import QUERIES, TOPICS
 from services.common.robot import RobotSpec
 from services.common.settings import ClockSettings, ZenohSettings
 from services.drive.config import DriveConfig
+from services.fleet.config import FleetConfig
 from services.lidar.config import LidarConfig
 from services.localization.config import LocalizationConfig
 from services.nav.config import CostmapConfig, NavConfig
@@ -39,6 +40,7 @@ SERVICES = REPO_ROOT / "services"
 CONFIG_TABLES: dict[str, list[tuple[str, type[msgspec.Struct]]]] = {
     "common": [("robot", RobotSpec), ("zenoh", ZenohSettings), ("clock", ClockSettings)],
     "drive": [("drive", DriveConfig)],
+    "fleet": [("fleet", FleetConfig)],
     "lidar": [("lidar", LidarConfig)],
     "localization": [("localization", LocalizationConfig)],
     "nav": [("nav", NavConfig), ("nav.global_costmap / nav.local_costmap", CostmapConfig), ("nav.dwa", DwaConfig)],

@@ -1,4 +1,5 @@
-"""``zagv install-units``: render the systemd units of ``deploy/systemd/`` for one robot.
+"""``zagv install-units``: render the systemd units of ``deploy/systemd/`` for one robot (or, with ``--site``,
+for the site server: its router and the fleet view, deploy/site.md).
 
 Templates are ``deploy/systemd/*.in`` with ``@@NAME@@`` placeholders (``$`` and ``%`` stay systemd's own). The
 rendered files go to ``--dest`` (default /etc/systemd/system); then ``systemctl daemon-reload`` and
@@ -19,6 +20,8 @@ SERVICES = ["drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_
 DEFAULT_DEST = "/etc/systemd/system"
 DEFAULT_CONFIG = "/etc/zagv/robot.toml"
 DEFAULT_ZENOH_CONFIG = "/etc/zagv/zenoh/router-loopback.json5"
+DEFAULT_SITE_CONFIG = "/etc/zagv/site.toml"
+DEFAULT_SITE_ZENOH_CONFIG = "/etc/zagv/zenoh/site-router-tls.json5"
 #: a SCHED_FIFO priority below the kernel's threaded IRQ handlers (50)
 DEFAULT_DRIVE_RT_PRIORITY = 40
 ROUTER_WATCHDOG_S = 10
@@ -44,6 +47,8 @@ class UnitOptions:
     zenoh_config: str = DEFAULT_ZENOH_CONFIG
     drive_cpu: int = 1
     drive_rt_priority: int = DEFAULT_DRIVE_RT_PRIORITY
+    #: the site server's units instead of a robot's
+    site: bool = False
 
     @property
     def python(self) -> Path:
@@ -55,8 +60,11 @@ def default_templates_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "deploy" / "systemd"
 
 
-def unit_names() -> list[str]:
-    """Every unit rendered: the router, one per service, and the target."""
+def unit_names(site: bool = False) -> list[str]:
+    """Every unit rendered: the router, one per service, and the target (a site: its router, the fleet view and
+    zagv-site.target)."""
+    if site:
+        return ["zagv-site-router.service", "zagv-fleet.service", "zagv-site.target"]
     return ["zagv-router.service", *(f"zagv-{name}.service" for name in SERVICES), "zagv.target"]
 
 
@@ -112,7 +120,7 @@ def substitutions(opts: UnitOptions) -> dict[str, str]:
         "ROUTER_TYPE": router_type,
         "ROUTER_EXEC": router_exec,
         "ROUTER_WATCHDOG": router_watchdog,
-        "UNITS": " ".join(n for n in unit_names() if n != "zagv.target"),
+        "UNITS": " ".join(n for n in unit_names(opts.site) if not n.endswith(".target")),
     }
 
 
@@ -132,7 +140,7 @@ def render_units(opts: UnitOptions, templates: Path | None = None) -> dict[str, 
     templates = templates or default_templates_dir()
     values = substitutions(opts)
     units: dict[str, str] = {}
-    for name in unit_names():
+    for name in unit_names(opts.site):
         path = templates / f"{name}.in"
         if not path.is_file():
             raise InstallError(f"template {path} not found (run from a zagv checkout or pass --templates DIR)")
@@ -157,12 +165,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--venv", required=True, help="the virtualenv zagv is installed in (absolute path)")
     p.add_argument("--user", required=True, help="the dedicated system user the services run as")
     p.add_argument("--dest", default=DEFAULT_DEST, help="where to write the units (default %(default)s)")
-    p.add_argument("--config", default=DEFAULT_CONFIG, help="robot TOML file (default %(default)s)")
+    p.add_argument("--site", action="store_true",
+                   help="the site server's units (site router, fleet view, zagv-site.target; deploy/site.md)")
+    p.add_argument("--config", help=f"robot TOML file (default {DEFAULT_CONFIG}; with --site {DEFAULT_SITE_CONFIG})")
     p.add_argument("--can-interface", default="can0", help="CAN interface of the drive (default %(default)s)")
     p.add_argument("--router", choices=["zenohd", "zagv"],
                    help="router program (default: zenohd when on PATH, else zagv router)")
-    p.add_argument("--zenoh-config", default=DEFAULT_ZENOH_CONFIG,
-                   help="router json5 config (default %(default)s; see deploy/zenoh/)")
+    p.add_argument("--zenoh-config", help=f"router json5 config (default {DEFAULT_ZENOH_CONFIG}; with --site "
+                                          f"{DEFAULT_SITE_ZENOH_CONFIG}; see deploy/zenoh/)")
     p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
     p.add_argument("--drive-rt-priority", type=int, default=DEFAULT_DRIVE_RT_PRIORITY,
                    help="SCHED_FIFO priority of the drive (default %(default)s)")
@@ -173,9 +183,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     zenohd = shutil.which("zenohd") or ""
     router = args.router or ("zenohd" if zenohd else "zagv")
-    opts = UnitOptions(venv=Path(args.venv), user=args.user, config=args.config, can_interface=args.can_interface,
-                       router=router, zenohd=zenohd, zenoh_config=args.zenoh_config, drive_cpu=args.drive_cpu,
-                       drive_rt_priority=args.drive_rt_priority)
+    config = args.config or (DEFAULT_SITE_CONFIG if args.site else DEFAULT_CONFIG)
+    zenoh_config = args.zenoh_config or (DEFAULT_SITE_ZENOH_CONFIG if args.site else DEFAULT_ZENOH_CONFIG)
+    opts = UnitOptions(venv=Path(args.venv), user=args.user, config=config, can_interface=args.can_interface,
+                       router=router, zenohd=zenohd, zenoh_config=zenoh_config, drive_cpu=args.drive_cpu,
+                       drive_rt_priority=args.drive_rt_priority, site=args.site)
     try:
         warnings = check_options(opts)
         units = render_units(opts, Path(args.templates) if args.templates else None)
@@ -187,5 +199,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"zagv install-units: warning: {warning}", file=sys.stderr)
     for path in written:
         print(f"wrote {path}")
-    print(f"router: {opts.router}; next: systemctl daemon-reload && systemctl enable --now zagv.target")
+    target = "zagv-site.target" if opts.site else "zagv.target"
+    print(f"router: {opts.router}; next: systemctl daemon-reload && systemctl enable --now {target}")
     return 0

@@ -9,7 +9,7 @@ import threading
 
 from services.common.lifetime import die_with_parent
 from services.common.logs import setup_logging
-from services.common.session import open_session, router_settings
+from services.common.session import router_settings, zenoh_config
 from services.common.settings import ZenohSettings
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -20,6 +20,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--listen", action="append",
                    help=f"endpoint to listen on (default: the config file's listen/endpoints, else {DEFAULT_LISTEN})")
     p.add_argument("--config", help="zenoh json5 config file applied first (TLS, access control)")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="another router to link to, e.g. a robot's router to its site router "
+                        "(default: the config file's connect/endpoints); retried while it is away")
     p.set_defaults(func=run)
 
 
@@ -34,16 +37,22 @@ def config_listen_endpoints(path: str | None) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    import zenoh
+
     die_with_parent()
     setup_logging("router")
     settings = router_settings(args.listen or config_listen_endpoints(args.config) or [DEFAULT_LISTEN])
-    if args.config:
-        settings = ZenohSettings(mode="router", connect=[], listen=settings.listen, config_file=args.config)
-    session = open_session(settings)
+    if args.config or args.connect:
+        settings = ZenohSettings(mode="router", connect=list(args.connect), listen=settings.listen,
+                                 config_file=args.config or "")
+    conf = zenoh_config(settings)
+    dialled = json.loads(conf.get_json("connect/endpoints")) or []
+    session = zenoh.open(conf)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"zagv router: listening on {', '.join(settings.listen)}", flush=True)
+    print(f"zagv router: listening on {', '.join(settings.listen)}"
+          + (f"; linking to {', '.join(map(str, dialled))}" if dialled else ""), flush=True)
     try:
         from services.common import systemd
 

@@ -67,7 +67,8 @@ class Stack:
         self.proc = subprocess.Popen(self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, cwd=REPO_ROOT, env=env, start_new_session=True)
         threading.Thread(target=self._read, daemon=True).start()
-        self.wait_line(r"^zagv: ready" if wait_ready else r"^zagv: router on", timeout_s=ready_timeout_s)
+        self.wait_line(r"^zagv: ready" if wait_ready else r"^zagv: (router on|external router at)",
+                       timeout_s=ready_timeout_s)
         return self
 
     def _read(self) -> None:

@@ -18,7 +18,7 @@ T = TypeVar("T")
 #: top-level tables a robot file may contain
 KNOWN_SECTIONS = frozenset(
     {"robot", "zenoh", "clock", "liveness", "drive", "lidar", "localization", "nav", "hmi_api", "sim", "launcher",
-     "vda5050", "recorder", "foxglove"}
+     "vda5050", "recorder", "foxglove", "fleet"}
 )
 
 

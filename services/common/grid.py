@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from proto.messages import OccupancyGrid
+
 #: yaw below this (rad) is treated as axis aligned
 YAW_EPS_RAD = 1e-9
 
@@ -39,3 +41,22 @@ def axis_aligned(data: np.ndarray, resolution: float, origin: tuple[float, float
     ok = (src_c >= 0) & (src_c < w) & (src_r >= 0) & (src_r < h)
     out[ok] = data[src_r[ok], src_c[ok]]
     return out, x0, y0
+
+
+def grid_png(grid: OccupancyGrid) -> bytes:
+    """An OccupancyGrid as a greyscale PNG, north up: row 0 of the image is the grid's last row (largest y).
+
+    Free (0) is white, occupied (100) black, unknown (-1) grey, values in between shaded linearly.
+    """
+    import io
+
+    from PIL import Image
+
+    cells = np.frombuffer(grid.data, dtype="<i1")
+    if grid.width <= 0 or grid.height <= 0 or len(cells) != grid.width * grid.height:
+        raise ValueError(f"map has {len(cells)} cells for {grid.width}x{grid.height}")
+    cells = cells.reshape(grid.height, grid.width)
+    grey = np.where(cells < 0, 205, 254 - (np.clip(cells, 0, 100).astype(np.int32) * 254) // 100).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(grey[::-1], mode="L").save(buf, format="PNG", optimize=False)
+    return buf.getvalue()

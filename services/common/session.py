@@ -26,6 +26,8 @@ from services.common.settings import ZenohSettings
 #: where a peer listens when its settings name no endpoint: loopback, a port the kernel picks
 PEER_LISTEN_DEFAULT = "tcp/127.0.0.1:0"
 SHM_DIR = "/dev/shm"
+#: ``connect/retry`` unless a config sets it: redial a lost endpoint after 0.1 s, backing off to 0.5 s at most
+RECONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 def shm_usable(path: str) -> bool:
@@ -41,8 +43,9 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     if settings.connect and settings.mode != "router":
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
     if settings.mode == "router":
-        conf.insert_json5("connect/endpoints", json.dumps([e for e in settings.connect if e not in settings.listen]
-                                                          if settings.listen else []))
+        dial = [e for e in settings.connect if e not in settings.listen] if settings.listen else []
+        if dial or not settings.config_file:  # a config file's connect list (a robot's site router) stays
+            conf.insert_json5("connect/endpoints", json.dumps(dial))
     if settings.listen:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
     elif settings.mode == "peer":
@@ -69,6 +72,10 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         # keep retrying the router forever rather than failing at start when it is not up yet
         conf.insert_json5("connect/timeout_ms", "-1")
         conf.insert_json5("connect/exit_on_failure", "false")
+    if json.loads(conf.get_json("connect/retry")) is None:
+        # after a lost link, dial again every RECONNECT_RETRY period (zenoh's default backs off to 4 s): a site
+        # view is back within about a second of its router's return
+        conf.insert_json5("connect/retry", json.dumps(RECONNECT_RETRY))
     return conf
 
 

@@ -28,7 +28,7 @@ from typing import Annotated, Any, Literal
 
 import msgspec
 from litestar import Litestar, MediaType, Request, Response, Router, delete, get, patch, post, websocket
-from litestar.connection import ASGIConnection, WebSocket
+from litestar.connection import WebSocket
 from litestar.exceptions import (
     ClientException,
     HTTPException,
@@ -36,13 +36,21 @@ from litestar.exceptions import (
     ValidationException,
     WebSocketDisconnect,
 )
-from litestar.handlers.base import BaseRouteHandler
 from litestar.openapi import OpenAPIConfig
 from litestar.openapi.plugins import JsonRenderPlugin
 from litestar.openapi.spec import Components, SecurityScheme
 from litestar.static_files import create_static_files_router
 from litestar.status_codes import HTTP_200_OK
 
+from services.common.web import (  # noqa: F401 - SECURITY_HEADERS is part of this module's interface
+    SECURITY_HEADERS,
+    TOKEN_IN_QUERY,
+    UndecodableBody,
+    bearer_token,
+    require_token,
+    security_layer,
+    strict_body,
+)
 from services.hmi_api import blackbox
 from services.hmi_api.backend import Backend, LoginThrottled, RobotRejected, RobotUnavailable
 from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseListFull, PoseNotFound, PoseRecord
@@ -61,16 +69,6 @@ Name = Annotated[str, msgspec.Meta(min_length=1, max_length=NAME_MAX)]
 MAP_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}(?!\n)$"
 MapName = Annotated[str, msgspec.Meta(pattern=MAP_NAME_PATTERN,
                                       description="a map name: letters, digits, '_', '-', '.'; no path")]
-#: security headers of every response: nothing from another origin, no framing, no MIME sniffing, no referrer
-SECURITY_HEADERS = {
-    "content-security-policy": "default-src 'self'; img-src 'self' data: blob:; connect-src 'self'; "
-                               "object-src 'none'; base-uri 'none'; frame-ancestors 'none'; form-action 'self'",
-    "x-frame-options": "DENY",
-    "x-content-type-options": "nosniff",
-    "referrer-policy": "no-referrer",
-}
-#: the query parameter a route may take the token from (``opt`` key of its handler)
-TOKEN_IN_QUERY = "token_in_query"
 
 
 class MapSaveIn(msgspec.Struct, forbid_unknown_fields=True):
@@ -167,97 +165,6 @@ class GoalAccepted(msgspec.Struct):
     accepted: bool
     goal_id: str
     reason: str = ""
-
-
-# ---------------------------------------------------------------------------------------------- auth
-
-
-class UndecodableBody(ClientException):
-    """A body that is not UTF-8: 400 (422 is for JSON that does not validate)."""
-
-    status_code = 400
-
-
-def bearer_token(connection: ASGIConnection, *, query_allowed: bool = False) -> str | None:
-    """The token of ``Authorization: Bearer``, or of ``?token=`` where ``query_allowed`` (WebSocket, downloads)."""
-    header = connection.headers.get("authorization", "")
-    if header.lower().startswith("bearer "):
-        return header[7:].strip()
-    return connection.query_params.get("token") if query_allowed else None
-
-
-def require_token(connection: ASGIConnection, handler: BaseRouteHandler) -> None:
-    backend: Backend = connection.app.state.backend
-    if not backend.tokens.valid(bearer_token(connection, query_allowed=bool(handler.opt.get(TOKEN_IN_QUERY)))):
-        raise NotAuthorizedException("login first: POST /api/login, then send Authorization: Bearer <token>")
-
-
-async def strict_body(request: Request) -> None:
-    """Decode the JSON body strictly against the handler's ``data`` type before Litestar's own (lax) conversion,
-    so that ``"0.1"`` for a number or ``true`` for a float is a 422, not silently converted. A body must be
-    ``application/json`` (415 otherwise: no form posts) and UTF-8 (400 otherwise)."""
-    data_field = request.route_handler.parsed_data_field
-    if data_field is None:
-        return None
-    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
-    if media_type != "application/json":
-        raise HTTPException(status_code=415, detail=f"the body must be application/json, not {media_type[:60]!r}")
-    body = await request.body()
-    try:
-        body.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise UndecodableBody(f"the body is not UTF-8 (byte {exc.start})") from None
-    try:
-        msgspec.json.decode(body, type=data_field.annotation, strict=True)
-    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
-        raise ValidationException(f"invalid request body: {exc}") from None
-    return None
-
-
-def host_name(host_header: str) -> str:
-    """The name part of a Host header: ``127.0.0.1:8080`` -> ``127.0.0.1``, ``[::1]:8080`` -> ``[::1]``."""
-    host = host_header.strip().lower()
-    if host.startswith("["):
-        return host[:host.index("]") + 1] if "]" in host else host
-    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
-
-
-def security_layer(allowed_hosts: list[str]):  # an ASGI middleware factory
-    """ASGI middleware: refuse a Host outside ``allowed_hosts`` (400, DNS rebinding; WebSockets too) and add
-    ``SECURITY_HEADERS`` to every HTTP response, error responses and static files included."""
-    allowed = {h.lower() for h in allowed_hosts}
-    extra = [(k.encode(), v.encode()) for k, v in SECURITY_HEADERS.items()]
-    refusal = msgspec.json.encode({"status_code": 400, "detail": "Host header not allowed (hmi_api.allowed_hosts)"})
-
-    def factory(app):
-        async def middleware(scope, receive, send) -> None:
-            if scope["type"] not in ("http", "websocket"):
-                await app(scope, receive, send)
-                return
-            host = next((v.decode("latin-1") for k, v in scope.get("headers", []) if k == b"host"), "")
-            if host_name(host) not in allowed:
-                if scope["type"] == "websocket":
-                    await send({"type": "websocket.close", "code": 1008})
-                    return
-                await send({"type": "http.response.start", "status": 400,
-                            "headers": [(b"content-type", b"application/json"), *extra]})
-                await send({"type": "http.response.body", "body": refusal})
-                return
-            if scope["type"] != "http":
-                await app(scope, receive, send)
-                return
-
-            async def send_with_headers(message) -> None:
-                if message["type"] == "http.response.start":
-                    names = {k.lower() for k, _ in message.get("headers", [])}
-                    message["headers"] = [*message.get("headers", []), *(h for h in extra if h[0] not in names)]
-                await send(message)
-
-            await app(scope, receive, send_with_headers)
-
-        return middleware
-
-    return factory
 
 
 def _backend(request: Request | WebSocket) -> Backend:

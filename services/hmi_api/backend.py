@@ -35,11 +35,11 @@ from proto.messages import (
     Waypoint,
     WaypointsRequest,
 )
+from services.common import auth
 from services.common.clock import Rate
 from services.common.node import Node
 from services.common.query import QueryError
 from services.common.robot import RobotSpec
-from services.hmi_api import auth
 from services.hmi_api.config import HmiApiConfig
 from services.hmi_api.jog import JogGate
 from services.hmi_api.posedb import DB_FILE, PoseDb, PoseRecord
@@ -99,7 +99,7 @@ class Backend:
 
     def _load_password(self) -> str:
         if self.config.password_hash:
-            auth.check_hash_format(self.config.password_hash)
+            auth.check_hash_format(self.config.password_hash, "hmi_api.password_hash")
             return self.config.password_hash
         stored, password = auth.first_run_hash(self.state_dir)
         if password is not None:

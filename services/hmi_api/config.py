@@ -44,9 +44,9 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     def __post_init__(self) -> None:
         if self.password_hash:
-            from services.hmi_api.auth import check_hash_format
+            from services.common.auth import check_hash_format
 
-            check_hash_format(self.password_hash)
+            check_hash_format(self.password_hash, "hmi_api.password_hash")
         if not 0 < self.port < 65536:
             raise ValueError(f"hmi_api.port must be in 1..65535, got {self.port}")
         if bool(self.tls_certificate) != bool(self.tls_private_key):
