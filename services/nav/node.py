@@ -214,14 +214,16 @@ async def run(ctx: ServiceContext) -> None:
             nav.localization_updated(clock.now())
 
     async def request_localization_update() -> None:
+        # armed before asking: the updated pose can arrive before the reply does
+        loc_state["answered"] = True
         try:
             reply = await node.query("localization/nomotion", m.Empty(), timeout_s=1.0)
         except QueryError as exc:
+            loc_state["answered"] = False
             log.info("no localization update at the goal: %s", exc)
             return
-        if reply.ok:
-            loc_state["answered"] = True
-        else:
+        if not reply.ok:
+            loc_state["answered"] = False
             log.info("localization refused an update at the goal: %s", reply.message)
 
     node.subscribe("pose", on_pose, latched=True)
