@@ -67,9 +67,9 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     z_rand: float = 0.1
     sigma_hit: float = 0.1
     laser_likelihood_max_dist: float = 2.0
-    #: beams ending in unknown cells score as if they ended this far (m) from an obstacle; < 0: as Nav2 (only the
-    #: distance to occupied cells counts, so a pose that puts unexplained beams into unknown space is punished
-    #: for every one of them)
+    #: beams ending in unknown cells score as if they ended at most this far (m) from an obstacle, and free space's
+    #: edge with unknown space is a surface; < 0: as Nav2 (only the distance to occupied cells counts, so a pose
+    #: that puts unexplained beams into unknown space is punished for every one of them)
     unknown_distance_m: float = 0.2
     laser_min_range: float = -1.0
     laser_max_range: float = -1.0
