@@ -30,14 +30,19 @@ import select
 import time
 import tty
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 
+from proto.keys import Keys
 from proto.messages import Clock, GroundTruth, ObstacleReply, ObstacleRequest, Pose2D, Reply, TeleportRequest, Twist2D
 from services.common.clock import SimClock
+from services.common.node import Node
 from services.common.service import ServiceContext
 from services.sim.config import SimConfig
+from services.sim.fleet import Fleet, start_poses
 from services.sim.simulation import Simulation
 from services.sim.world import WorldError, load_world
 
@@ -225,31 +230,60 @@ class ImuPty:
                 os.close(fd)
 
 
+@dataclass
+class RobotIo:
+    """One simulated robot's I/O: its Zenoh node (keys ``agv/<id>/...``), publishers and hardware links."""
+
+    rid: str
+    sim: Simulation
+    node: Node
+    clock_pub: Any = None
+    truth_pub: Any = None
+    link: CanLink | None = None
+    imu: ImuPty | None = None
+    lidar: Any = None
+
+
 async def run(ctx: ServiceContext) -> None:
     cfg: SimConfig = ctx.config["sim"]
     node = ctx.node
     try:
         world = load_world(cfg.world, cfg.map_yaml)
-        sim = Simulation(cfg, ctx.robot, world)
+        fleet = None
+        if cfg.robots:  # several robots in one world (services.sim.fleet)
+            cfg.check()
+            radius = cfg.footprint_radius_m or ctx.robot.chassis_radius_m
+            given = [tuple(r.start_pose) for r in cfg.robots if r.start_pose]
+            if len(given) not in (0, len(cfg.robots)):
+                raise ValueError("[sim] robots: give every robot a start_pose or none")
+            starts = start_poses(world, len(cfg.robots), radius, given or [p for _, p in world.robots])
+            fleet = Fleet(cfg, ctx.robot, world, [r.id for r in cfg.robots], starts)
+            sims = fleet.sims
+        else:
+            sims = {ctx.robot.robot_id: Simulation(cfg, ctx.robot, world)}
     except (WorldError, ValueError) as exc:
         node.log.error("cannot start: %s", exc)
         raise SystemExit(2) from None
-    node.log.info("world %s (%dx%d cells at %.3f m), robot at (%.2f, %.2f, %.2f)%s", world.name, world.shape[1],
-                  world.shape[0], world.resolution_m, sim.robot.x, sim.robot.y, sim.robot.theta,
-                  " IN COLLISION" if sim.robot.collided else "")
+    for rid, sim in sims.items():
+        node.log.info("world %s (%dx%d cells at %.3f m), robot %s at (%.2f, %.2f, %.2f)%s", world.name,
+                      world.shape[1], world.shape[0], world.resolution_m, rid, sim.robot.x, sim.robot.y,
+                      sim.robot.theta, " IN COLLISION" if sim.robot.collided else "")
     clock = SimClock()
     clock.advance(0.0, cfg.speed_factor)
     node.clock = clock  # stats report sim time; this service never follows the clock topic
-    # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same (~0.15 ms)
-    clock_pub = node.publisher("clock")
-    truth_pub = node.publisher("sim/ground_truth")
+    hardware = {r.id: r for r in cfg.robots}
+    robots: list[RobotIo] = []
+    for rid, sim in sims.items():
+        # every robot's keys: the service's own node for its own id, one more node (same session) per other robot
+        rnode = node if rid == ctx.robot.robot_id else Node(node.name, node.session, Keys(rid))
+        rnode.clock = clock  # set after construction: a node built on a SimClock would follow the clock topic
+        robots.append(RobotIo(rid, sim, rnode))
+    sim0_ = next(iter(sims.values()))
 
-    def teleport(req: TeleportRequest) -> Reply:
-        p = req.pose
-        if not sim.teleport(p.x, p.y, p.theta):
-            return Reply(ok=False, message=f"teleport: pose must be finite, got ({p.x}, {p.y}, {p.theta})")
-        note = " (in collision: the robot cannot move deeper)" if sim.robot.collided else ""
-        return Reply(ok=True, message=f"robot at ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
+    def contact_of(io: RobotIo) -> str:
+        if fleet is not None:
+            return fleet.contact_with[io.rid]
+        return "wall" if io.sim.robot.collided else ""
 
     def obstacles(req: ObstacleRequest) -> ObstacleReply:
         try:
@@ -269,31 +303,47 @@ async def run(ctx: ServiceContext) -> None:
         node.log.info("%s", msg)
         return ObstacleReply(ok=True, message=msg, ids=world.active_obstacle_ids())
 
-    node.queryable("sim/teleport", teleport)
-    node.queryable("sim/obstacles", obstacles)
+    for io in robots:
+        # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same
+        io.clock_pub = io.node.publisher("clock")
+        io.truth_pub = io.node.publisher("sim/ground_truth")
 
-    link = CanLink(sim, cfg.can_interface, cfg.can_channel)
-    imu = None
-    if cfg.imu_link:
-        try:
-            imu = ImuPty(sim, cfg.imu_link)
-        except OSError as exc:
-            node.log.error("Razor IMU disabled: cannot create %s: %s", cfg.imu_link, exc)
-    lidar = None
-    if Lms111Emulator is None:
-        node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
-    else:
-        try:
-            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
-                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
-                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
-            await lidar.start()
-        except (OSError, ValueError, TypeError) as exc:
-            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
-            lidar = None
+        def teleport(req: TeleportRequest, io: RobotIo = io) -> Reply:
+            p = req.pose
+            ok = fleet.teleport(io.rid, p.x, p.y, p.theta) if fleet is not None else io.sim.teleport(p.x, p.y, p.theta)
+            if not ok:
+                return Reply(ok=False, message=f"teleport: pose must be finite, got ({p.x}, {p.y}, {p.theta})")
+            note = f" (in contact with {contact_of(io)}: the robot cannot move deeper)" if io.sim.robot.collided else ""
+            return Reply(ok=True, message=f"robot at ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
 
-    node.ready("world loaded, CAN bus and LMS111 emulation up")
+        io.node.queryable("sim/teleport", teleport)
+        io.node.queryable("sim/obstacles", obstacles)
+        hw = hardware.get(io.rid)
+        can_channel = hw.can_channel if hw else cfg.can_channel
+        lidar_port = hw.lidar_port if hw else cfg.lidar_port
+        imu_link = hw.imu_link if hw else cfg.imu_link
+        io.link = CanLink(io.sim, cfg.can_interface, can_channel)
+        if imu_link:
+            try:
+                io.imu = ImuPty(io.sim, imu_link)
+            except OSError as exc:
+                node.log.error("Razor IMU of %s disabled: cannot create %s: %s", io.rid, imu_link, exc)
+        if Lms111Emulator is None:
+            node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
+        else:
+            try:
+                # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
+                io.lidar = Lms111Emulator(cfg.lidar_host, lidar_port, io.sim.scan_source, clock,
+                                          frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
+                                          range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
+                await io.lidar.start()
+            except (OSError, ValueError, TypeError) as exc:
+                node.log.error("LMS111 emulator of %s not started on %s:%d: %s", io.rid, cfg.lidar_host, lidar_port,
+                               exc)
+                io.lidar = None
+
+    for io in robots:
+        io.node.ready("world loaded, CAN bus and LMS111 emulation up")
     clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
     truth_every = max(1, round(1.0 / cfg.ground_truth_hz / cfg.step_s))
     imu_every = max(1, round(1.0 / cfg.imu_rate_hz / cfg.step_s))
@@ -302,55 +352,71 @@ async def run(ctx: ServiceContext) -> None:
     node.extra_stats["sim"] = stats
     # wall time below is the sim's own pacing reference (it is the clock master), not robot timing
     wall0 = time.monotonic()
-    sim0 = sim.now_s
-    meas_wall, meas_sim = wall0, sim.now_s
+    sim0 = sim0_.now_s
+    meas_wall, meas_sim = wall0, sim0_.now_s
     achieved = cfg.speed_factor if not free_run else 1.0  # replaced by the measured factor after a second
     next_connect = 0.0
+    step_all = fleet.step if fleet is not None else (lambda: {robots[0].rid: robots[0].sim.step()})
     try:
         while not ctx.stop.is_set():
             now_wall = time.monotonic()
-            if link.bus is None and now_wall >= next_connect:
-                if link.connect():
-                    link.send(sim.boot())  # power-on (again after a lost bus): boot-up messages
-                else:
-                    next_connect = now_wall + 0.5
+            if now_wall >= next_connect:
+                for io in robots:
+                    if io.link.bus is None:
+                        if io.link.connect():
+                            io.link.send(io.sim.boot())  # power-on (again after a lost bus): boot-up messages
+                        else:
+                            next_connect = now_wall + 0.5
+            now_s = sim0_.now_s
             if free_run:
                 await asyncio.sleep(0)
             else:
-                due = wall0 + (sim.now_s + sim.dt - sim0) / cfg.speed_factor
+                due = wall0 + (now_s + sim0_.dt - sim0) / cfg.speed_factor
                 delay = due - now_wall
                 if delay > 0.0:
                     # wake at most every 2 ms of wall time and catch up in a burst: fewer wake-ups at high factors
                     await asyncio.sleep(max(delay, MIN_SLEEP_WALL_S))
                 elif delay < -0.25:  # cannot keep up: re-anchor rather than burst
                     stats["behind"] += 1
-                    wall0, sim0 = now_wall, sim.now_s
-                elif sim.steps % 4 == 0:
+                    wall0, sim0 = now_wall, now_s
+                elif sim0_.steps % 4 == 0:
                     await asyncio.sleep(0)
-            link.poll()
-            link.send(sim.step())
-            k = sim.steps
-            clock.advance(sim.now_s, achieved)
+            for io in robots:
+                io.link.poll()
+            frames = step_all()
+            for io in robots:
+                io.link.send(frames[io.rid])
+            k = sim0_.steps
+            now_s = sim0_.now_s
+            clock.advance(now_s, achieved)
             if k % clock_every == 0:
-                clock_pub.put(Clock(stamp=sim.now_s, speed_factor=achieved))
+                tick = Clock(stamp=now_s, speed_factor=achieved)
+                for io in robots:
+                    io.clock_pub.put(tick)
                 if world.dynamic:
-                    world.apply_schedule(sim.now_s)
+                    world.apply_schedule(now_s)
             if k % truth_every == 0:
-                r = sim.robot
-                truth_pub.put(GroundTruth(stamp=sim.now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
-                                          twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=sim.now_s),
-                                          collided=r.collided))
-            if imu is not None and k % imu_every == 0:
-                imu.tick()
+                for io in robots:
+                    r = io.sim.robot
+                    io.truth_pub.put(GroundTruth(stamp=now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
+                                                 twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=now_s),
+                                                 collided=r.collided, contact_with=contact_of(io)))
+            if k % imu_every == 0:
+                for io in robots:
+                    if io.imu is not None:
+                        io.imu.tick()
             if now_wall - meas_wall >= 1.0:
-                achieved = (sim.now_s - meas_sim) / (now_wall - meas_wall)
+                achieved = (now_s - meas_sim) / (now_wall - meas_wall)
                 stats["speed_factor"] = round(achieved, 3)
-                stats.update(can_rx=link.rx, can_tx=link.tx, sim_s=round(sim.now_s, 3))
-                meas_wall, meas_sim = now_wall, sim.now_s
+                stats.update(can_rx=sum(io.link.rx for io in robots), can_tx=sum(io.link.tx for io in robots),
+                             sim_s=round(now_s, 3))
+                meas_wall, meas_sim = now_wall, now_s
     finally:
-        if lidar is not None:
-            with contextlib.suppress(Exception):
-                await lidar.stop()
-        if imu is not None:
-            imu.close()
-        link.close()
+        for io in robots:
+            if io.lidar is not None:
+                with contextlib.suppress(Exception):
+                    await io.lidar.stop()
+            if io.imu is not None:
+                io.imu.close()
+            if io.link is not None:
+                io.link.close()
