@@ -107,6 +107,8 @@ class Scenario:
     dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
     name: str = "scenario"
     mapping: Mapping | None = None
+    #: several robots in one world, each with its own start and goals (services/cli/scenario_fleet.py)
+    robots: list[Any] = field(default_factory=list)
 
 
 class ScenarioError(ValueError):
@@ -157,7 +159,7 @@ def load_scenario(path: str | Path) -> Scenario:
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
     known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description",
-             "mapping"}
+             "mapping", "robots"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ScenarioError(f"{p}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
@@ -173,16 +175,17 @@ def load_scenario(path: str | Path) -> Scenario:
                                 f" folder: {', '.join(map(str, candidates))})")
         map_yaml = str(found[0])
     goals_raw = data.get("goals", [])
-    if not goals_raw:
+    robots = []
+    if "robots" in data:
+        from services.cli.scenario_fleet import load_robots
+
+        if goals_raw or "mapping" in data or "dynamic_obstacles" in data:
+            raise ScenarioError(f"{p}: with [[robots]], goals go in each robot's [[robots.goals]] (no top-level "
+                                "goals, mapping or dynamic_obstacles)")
+        robots = load_robots(data["robots"], p)
+    elif not goals_raw:
         raise ScenarioError(f"{p}: no [[goals]]")
-    goals = []
-    for k, g in enumerate(goals_raw, 1):
-        if "pose" not in g:
-            raise ScenarioError(f"{p}: goals[{k}] has no pose")
-        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
-        if extra:
-            raise ScenarioError(f"{p}: goals[{k}]: unknown key(s) {', '.join(extra)}")
-        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"goals[{k}].pose")))
+    goals = parse_goals(goals_raw, p, "goals")
     obstacles = []
     for k, o in enumerate(data.get("dynamic_obstacles", []), 1):
         extra = sorted(set(o) - {"rect", "during_goal", "appear_after_s"})
@@ -204,7 +207,22 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
     mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
     return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
-                    speed, obstacles, name, mapping)
+                    speed, obstacles, name, mapping, robots)
+
+
+def parse_goals(goals_raw: Any, p: Path, what: str) -> list[Goal]:
+    """``[[goals]]`` entries (``pose``, optional ``id``) -> Goals; ScenarioError naming ``what[k]``."""
+    if not isinstance(goals_raw, list):
+        raise ScenarioError(f"{p}: {what} must be an array of tables, got {goals_raw!r}")
+    goals = []
+    for k, g in enumerate(goals_raw, 1):
+        if not isinstance(g, dict) or "pose" not in g:
+            raise ScenarioError(f"{p}: {what}[{k}] has no pose")
+        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
+        if extra:
+            raise ScenarioError(f"{p}: {what}[{k}]: unknown key(s) {', '.join(extra)}")
+        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"{what}[{k}].pose")))
+    return goals
 
 
 # --------------------------------------------------------------------------- results
@@ -713,6 +731,10 @@ def run(args: argparse.Namespace) -> int:
         sc.repeats = args.repeats
     if args.speed:
         sc.speed = args.speed
+    if sc.robots:
+        from services.cli.scenario_fleet import run_fleet
+
+        return run_fleet(sc, args)
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-scenario-"))
     run_dir.mkdir(parents=True, exist_ok=True)
     extra = ["--headless"]
