@@ -86,3 +86,13 @@ def test_generate_places_several_robots_apart(tmp_path) -> None:  # noqa: ANN001
         for p in places[a]:
             assert world.clearance_m(p[0], p[1]) >= 0.63 + 0.25 - 0.05
     assert out.read_text().startswith("# generated: 3 robots")
+
+
+def test_closest_approach_per_pair() -> None:
+    from services.cli.scenario_fleet import closest_approach
+
+    tracks = {"a": {0.0: (0.0, 0.0), 1.0: (1.0, 0.0), 2.0: (2.0, 0.0)},
+              "b": {0.0: (5.0, 0.0), 1.0: (3.0, 0.0), 2.0: (4.0, 0.0)},
+              "c": {5.0: (0.0, 0.0)}}
+    out = closest_approach(tracks, 0.5)
+    assert out == {"a-b": {"gap_m": 1.0, "stamp": 1.0}}  # 2 m apart at t = 1 and 2: the first; c never overlaps

@@ -103,11 +103,14 @@ class FleetClient(Client):
     def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:  # noqa: ANN001
         self.contacts: list[tuple[float, str]] = []
         self.watching = False
+        self.track: dict[float, tuple[float, float]] = {}  # sim stamp -> true (x, y) while watching
         super().__init__(session, keys, loop)
 
     def _on_truth(self, msg: m.GroundTruth) -> None:
-        if msg.collided and not (self.truth and self.truth.collided) and self.watching:
-            self.contacts.append((msg.stamp, msg.contact_with or "wall"))
+        if self.watching:
+            if msg.collided and not (self.truth and self.truth.collided):
+                self.contacts.append((msg.stamp, msg.contact_with or "wall"))
+            self.track[round(msg.stamp, 3)] = (msg.pose.x, msg.pose.y)
         super()._on_truth(msg)
 
 
@@ -117,10 +120,12 @@ class FleetResult:
     contacts: list[dict] = field(default_factory=list)
     blocked: list[str] = field(default_factory=list)
     deadlocks: list[str] = field(default_factory=list)
+    #: per pair "a-b": the least edge-to-edge gap between the two chassis over the run (m) and when (sim s)
+    closest: dict[str, dict] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {"robots": self.robots, "contacts": self.contacts, "blocked": self.blocked,
-                "deadlocks": self.deadlocks}
+                "deadlocks": self.deadlocks, "closest_approach": self.closest}
 
 
 def merge_contacts(per_robot: dict[str, list[tuple[float, str]]], same_within_s: float = 1.0) -> list[dict]:
@@ -133,6 +138,23 @@ def merge_contacts(per_robot: dict[str, list[tuple[float, str]]], same_within_s:
                 continue
             out.append({"stamp": round(stamp, 3), "robots": pair})
     return sorted(out, key=lambda c: c["stamp"])
+
+
+def closest_approach(tracks: dict[str, dict[float, tuple[float, float]]], radius_m: float) -> dict[str, dict]:
+    """Per pair of robots, the least edge-to-edge gap |p_a - p_b| - 2 r (m) over the stamps both were seen at (the
+    simulator publishes every robot's ground truth at the same stamps)."""
+    out = {}
+    ids = sorted(tracks)
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            common = tracks[a].keys() & tracks[b].keys()
+            if not common:
+                continue
+            t = min(common, key=lambda s: math.hypot(tracks[a][s][0] - tracks[b][s][0],
+                                                     tracks[a][s][1] - tracks[b][s][1]))
+            gap = math.hypot(tracks[a][t][0] - tracks[b][t][0], tracks[a][t][1] - tracks[b][t][1]) - 2 * radius_m
+            out[f"{a}-{b}"] = {"gap_m": round(gap, 3), "stamp": t}
+    return out
 
 
 def blocked_and_deadlocks(robots: list[dict]) -> tuple[list[str], list[str]]:
@@ -215,7 +237,10 @@ async def run_fleet_scenario(sc: Scenario, session, *, goal_timeout_s: float, pr
     finally:
         for c in clients.values():
             c.close()
+    from services.common.robot import RobotSpec
+
     result.contacts = merge_contacts({rid: c.contacts for rid, c in clients.items()})
+    result.closest = closest_approach({rid: c.track for rid, c in clients.items()}, RobotSpec().chassis_radius_m)
     result.blocked, result.deadlocks = blocked_and_deadlocks(result.robots)
     return result
 
@@ -237,6 +262,9 @@ def format_fleet(result: FleetResult) -> str:
     goals = [g for r in result.robots for g in r["goals"]]
     lines.append(f"fleet: {len(result.robots)} robots reached {sum(g['reached'] for g in goals)}/{len(goals)} goals; "
                  f"contacts between robots {len(robot_contacts)}, with walls {len(wall_contacts)}")
+    if result.closest:
+        lines.append("closest approach (chassis edge to edge): " + ", ".join(
+            f"{pair} {v['gap_m']:.2f} m at {v['stamp']:.0f} s" for pair, v in result.closest.items()))
     for c in result.contacts:
         lines.append(f"contact at {c['stamp']:.1f} s: {' - '.join(c['robots'])}")
     lines += result.blocked + result.deadlocks
