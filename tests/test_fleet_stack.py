@@ -63,6 +63,7 @@ class Robot:
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_two_robots_see_each_other_and_a_push_is_a_contact_both_report(stack_factory) -> None:  # noqa: ANN001
     # r1 and r2 face each other 2.4 m apart (centres) in the empty room: straight ahead, each laser (0.45 m ahead
     # of its robot's centre) sees the other chassis at 2.4 - 0.63 - 0.45 = 1.32 m; alone it would see a far wall
