@@ -132,15 +132,47 @@ def test_three_robots_cross_the_hall_without_contact(tmp_path) -> None:  # noqa:
     print(text)
 
 
+#: three robots on Nav2's depot map: r1 in the west, r2 along the east side, r3 across the whole floor and back,
+#: its route crossing r1's; the depot goals of scenarios/depot.toml and two more in the open middle aisle
+DEPOT_FLEET = """
+speed = 1.0
+[[robots]]
+id = "r1"
+start = [1.6, 6.0, 0.0]
+[[robots.goals]]
+id = "north-west"
+pose = [7.5, 8.6, 0.0]
+[[robots.goals]]
+id = "south-west"
+pose = [7.8, 1.9, -1.57]
+[[robots]]
+id = "r2"
+start = [27.9, 12.7, 1.57]
+[[robots.goals]]
+id = "south-east"
+pose = [22.3, 1.5, 3.14]
+[[robots.goals]]
+id = "north-east"
+pose = [27.9, 12.7, 1.57]
+[[robots]]
+id = "r3"
+start = [19.0, 8.4, 3.14]
+[[robots.goals]]
+id = "west"
+pose = [3.6, 8.4, 3.14]
+[[robots.goals]]
+id = "centre"
+pose = [19.0, 8.4, 0.0]
+"""
+
+
 @pytest.mark.long
 def test_three_robots_in_the_depot_without_contact(tmp_path, shared_dir) -> None:  # noqa: ANN001
     depot = shared_dir / "data" / "maps" / "nav2_depot" / "depot.yaml"
     if not depot.is_file():
         pytest.skip(f"the depot map is not in the development data ({depot})")
-    from services.cli.scenario_generate import generate_file
-
-    scenario = generate_file(tmp_path / "depot3.toml", map_yaml=str(depot), n_goals=2, seed=1, start=(1.6, 6.0, 0.0),
-                             speed=1.0, robots=3)
+    scenario = tmp_path / "depot_fleet.toml"
+    scenario.write_text(f'map = "{depot}"\n' + DEPOT_FLEET)
     code, result, text = run_scenario_file(scenario, tmp_path)
     assert_all_reached_without_contact(code, result, text, 3)
     print(text)

@@ -286,6 +286,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         router.close()
         return 2
     keys = Keys(plan.robot_ids[0])
+    ready_timeout_s *= max(1, len(plan.fleet))  # every robot's stack starts on the same machine
     expected = plan.expected_tokens()
     ready = asyncio.Event()
     stop = asyncio.Event()
