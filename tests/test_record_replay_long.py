@@ -26,6 +26,7 @@ from services.cli.bench_record import (
     trajectory_rms_m,
 )
 from services.cli.stack_process import REPO_ROOT, Stack
+from services.common.se2 import compose
 from tests.test_record_replay import check_bag_matches_published
 
 pytestmark = [pytest.mark.integration, pytest.mark.long, pytest.mark.timeout(3600)]
@@ -44,12 +45,6 @@ def test_full_corridor_run_records_and_replays(tmp_path: Path) -> None:
           f"counts {counts}; replay RMS {rms_m:.4f} m over {matched} poses; replay x{speed:.1f}")
     assert rec.goals_reached == rec.goals == 7
     assert matched > 1000 and rms_m < 0.01
-
-
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
-                            np.arctan2(np.sin(a[:, 2] + b[:, 2]), np.cos(a[:, 2] + b[:, 2]))])
 
 
 def test_fr079_ros1_bag_replayed_into_live_slam(tmp_path: Path, shared_dir: Path) -> None:
@@ -98,7 +93,7 @@ def test_fr079_ros1_bag_replayed_into_live_slam(tmp_path: Path, shared_dir: Path
     tf_poses = np.array([[t.x, t.y, t.theta] for t in map_odom])
     scan_stamps = np.array([s.stamp_s for s in log.scans])
     idx = np.clip(np.searchsorted(tf_stamps, scan_stamps + 1e-6) - 1, 0, len(tf_stamps) - 1)
-    robot = _compose(tf_poses[idx], np.array([s.odom_pose for s in log.scans]))
+    robot = compose(tf_poses[idx], np.array([s.odom_pose for s in log.scans]))
     live_error = relative_pose_error(scan_stamps, scan_poses(robot, log.sensor_pose), relations)
     print(f"fr079 live SLAM via replay (x2, {replay_s:.0f} s): map grew to {max(maps) if maps else 0} known cells "
           f"in {len(maps)} maps; RPE {live_error.translation_mean_m:.4f} m / {live_error.rotation_mean_rad:.4f} rad "

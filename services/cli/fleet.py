@@ -39,7 +39,7 @@ def parse_robot_arg(text: str) -> RobotSlot:
         raise ValueError(f"--robot {text!r}: the start must be three numbers X,Y,THETA") from None
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise ValueError(f"--robot {text!r}: the start must be three finite numbers X,Y,THETA")
-    return RobotSlot(m.group("id"), vals)  # type: ignore[arg-type]
+    return RobotSlot(m.group("id"), (vals[0], vals[1], vals[2]))
 
 
 def fleet_slots(count: int, explicit: list[RobotSlot], world_robots: list[tuple[str, tuple[float, float, float]]]

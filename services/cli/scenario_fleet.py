@@ -31,70 +31,19 @@ import math
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario import (
-    Client,
-    Goal,
-    Scenario,
-    ScenarioError,
-    _pose,
-    format_table,
-    leg_totals,
-    parse_goals,
-    place_robot,
-    run_goal,
-    summarize,
-)
+from services.cli.scenario import format_table, leg_totals, place_robot, run_goal, summarize
+from services.cli.scenario_client import Client
+from services.cli.scenario_model import Scenario, ScenarioRobot
 from services.common.query import QueryError
 
 #: a goal that ends unreached with another chassis this close (m, edge to edge) was blocked by that robot
 BLOCKED_GAP_M = 1.5
-ROBOT_KEYS = {"id", "start", "goals", "start_after_s"}
-
-
-@dataclass
-class ScenarioRobot:
-    """One robot of a fleet scenario: its id, start pose, goals (in order) and delay before its first goal."""
-
-    id: str
-    start: tuple[float, float, float]
-    goals: list[Goal]
-    start_after_s: float = 0.0
-
-
-def load_robots(raw: Any, p: Path) -> list[ScenarioRobot]:
-    """The ``[[robots]]`` array; ScenarioError naming the entry and key."""
-    if not isinstance(raw, list) or not raw:
-        raise ScenarioError(f"{p}: robots must be a non-empty array of tables ([[robots]])")
-    robots = []
-    for k, r in enumerate(raw, 1):
-        if not isinstance(r, dict):
-            raise ScenarioError(f"{p}: robots[{k}] must be a table")
-        extra = sorted(set(r) - ROBOT_KEYS)
-        if extra:
-            raise ScenarioError(f"{p}: robots[{k}]: unknown key(s) {', '.join(extra)}; known: "
-                                f"{', '.join(sorted(ROBOT_KEYS))}")
-        rid = r.get("id")
-        if not isinstance(rid, str) or not rid or any(c in rid for c in "/*$?#: "):
-            raise ScenarioError(f"{p}: robots[{k}].id must be a robot id (no / * $ ? # : or spaces), got {rid!r}")
-        if "start" not in r:
-            raise ScenarioError(f"{p}: robots[{k}] ({rid}) has no start")
-        goals = parse_goals(r.get("goals", []), p, f"robots[{k}].goals")
-        if not goals:
-            raise ScenarioError(f"{p}: robots[{k}] ({rid}) has no [[robots.goals]]")
-        delay = r.get("start_after_s", 0.0)
-        if isinstance(delay, bool) or not isinstance(delay, int | float) or not 0.0 <= delay < math.inf:
-            raise ScenarioError(f"{p}: robots[{k}].start_after_s must be a number >= 0, got {delay!r}")
-        robots.append(ScenarioRobot(rid, _pose(r["start"], f"robots[{k}].start"), goals, float(delay)))
-    ids = [r.id for r in robots]
-    if len(set(ids)) != len(ids):
-        raise ScenarioError(f"{p}: robot ids must be distinct, got {', '.join(ids)}")
-    return robots
 
 
 class FleetClient(Client):
@@ -178,7 +127,7 @@ def blocked_and_deadlocks(robots: list[dict]) -> tuple[list[str], list[str]]:
     return lines, deadlocks
 
 
-def nearest_robot(c: Client, others: dict[str, Client], radius_m: float) -> tuple[str | None, float | None]:
+def nearest_robot(c: Client, others: Mapping[str, Client], radius_m: float) -> tuple[str | None, float | None]:
     """The other robot whose chassis is nearest this one's (edge-to-edge gap m), from the ground truth."""
     if c.truth is None:
         return None, None
@@ -192,7 +141,7 @@ def nearest_robot(c: Client, others: dict[str, Client], radius_m: float) -> tupl
     return best
 
 
-async def run_robot(robot: ScenarioRobot, c: Client, clients: dict[str, Client], t0: float, goal_timeout_s: float,
+async def run_robot(robot: ScenarioRobot, c: Client, clients: Mapping[str, Client], t0: float, goal_timeout_s: float,
                     progress) -> dict:  # noqa: ANN001
     """Robot ``robot``'s goals in order, the first ``start_after_s`` after ``t0`` (sim s)."""
     from services.common.robot import RobotSpec

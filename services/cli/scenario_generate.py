@@ -21,6 +21,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -48,7 +49,8 @@ class FreeSpace:
         return (int(math.floor((y - self.origin_xy[1]) / self.resolution_m)),
                 int(math.floor((x - self.origin_xy[0]) / self.resolution_m)))
 
-    def centre(self, r: int, c: int) -> tuple[float, float]:
+    def centre(self, r: Any, c: Any) -> tuple[Any, Any]:
+        """Centre (x_m, y_m) of cells (row r, column c): scalars or arrays."""
         return (self.origin_xy[0] + (c + 0.5) * self.resolution_m, self.origin_xy[1] + (r + 0.5) * self.resolution_m)
 
     def clearance_at(self, x: float, y: float) -> float:
@@ -154,7 +156,7 @@ def generate_fleet(space: FreeSpace, n_robots: int, n_goals: int, seed: int,
     share a parking place), in the same drivable region as robot 1's start."""
     rng = np.random.default_rng(seed)
     separation = 2.0 * robot_radius_m + spacing_m
-    out = []
+    out: list[tuple[tuple[float, float, float], list[tuple[float, float, float]]]] = []
     taken: list[tuple[float, ...]] = []
     for k in range(n_robots):
         s, goals = generate_goals(space, n_goals, seed, start if k == 0 else None, goal_clearance_m=goal_clearance_m,
@@ -185,7 +187,7 @@ def map_label(map_yaml: str) -> str:
     return p.parent.name if p.stem in ("map", "") else p.stem
 
 
-def load_solid(map_yaml: str | None, world: str | None):  # noqa: ANN201
+def load_solid(map_yaml: str | None, world: str | None):
     """The simulator's world for a map YAML or a built-in world name."""
     from services.sim.world import load_world
 
@@ -208,8 +210,9 @@ def generate_file(out: Path, *, map_yaml: str | None = None, world: str | None =
                                goal_clearance_m=robot_radius_m + goal_margin_m, min_leg_m=min_leg_m,
                                max_leg_m=max_leg_m)
     else:
-        start, goals = generate_goals(space, n_goals, seed, start, goal_clearance_m=robot_radius_m + goal_margin_m,
-                                      min_leg_m=min_leg_m, max_leg_m=max_leg_m)
+        start_pose, goals = generate_goals(space, n_goals, seed, start,
+                                           goal_clearance_m=robot_radius_m + goal_margin_m, min_leg_m=min_leg_m,
+                                           max_leg_m=max_leg_m)
     out.parent.mkdir(parents=True, exist_ok=True)
     if map_yaml:
         mp = Path(map_yaml).resolve()
@@ -228,7 +231,7 @@ def generate_file(out: Path, *, map_yaml: str | None = None, world: str | None =
             f"; every start and goal {2 * robot_radius_m + 0.6:.2f} m from the other robots'"
         out.write_text(fleet_scenario_toml(label, source, fleet, speed, desc))
     else:
-        out.write_text(scenario_toml(label, source, start, goals, speed, desc))
+        out.write_text(scenario_toml(label, source, start_pose, goals, speed, desc))
     return out
 
 
@@ -262,12 +265,13 @@ def run_generate(args: argparse.Namespace) -> int:
     if args.goals < 1 or args.robots < 1:
         print("zagv scenario generate: --goals and --robots must be >= 1", file=sys.stderr)
         return 2
-    start = None
+    start: tuple[float, float, float] | None = None
     if args.start:
         try:
-            start = tuple(float(v) for v in args.start.split(","))
-            if len(start) != 3 or not all(math.isfinite(v) for v in start):
+            x, y, theta = (float(v) for v in args.start.split(","))
+            if not all(math.isfinite(v) for v in (x, y, theta)):
                 raise ValueError
+            start = (x, y, theta)
         except ValueError:
             print(f"zagv scenario generate: --start must be x,y,theta numbers, got {args.start!r}", file=sys.stderr)
             return 2

@@ -10,11 +10,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import importlib.util
 import os
 import random
 import signal
-import socket
 import sys
 import tempfile
 import time
@@ -31,16 +29,9 @@ from services.common.lifetime import die_with_parent
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
-#: services in start order; those whose package has no __main__ yet are skipped
+#: services in start order (each is ``python -m services.<name>``)
 SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def service_available(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(f"services.{name}.__main__") is not None
-    except ModuleNotFoundError:  # no such package in this build
-        return False
 
 
 @dataclass
@@ -102,12 +93,12 @@ class StackPlan:
         return f"{self.fleet[k].id}.{service}" if self.fleet else service
 
     def services(self) -> list[str]:
-        names = [s for s in SERVICES if service_available(s)]
+        names = list(SERVICES)
         if not self.sim:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
-        if self.foxglove_port and service_available("foxglove_bridge"):  # opt-in: it opens a port
+        if self.foxglove_port:  # opt-in: it opens a port
             names.insert(len(names) - ("hmi_api" in names), "foxglove_bridge")
         if self.vda5050:
             names.append("vda5050")
@@ -201,15 +192,9 @@ def _toml_str(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def render_world_map(plan: StackPlan) -> None:
     """Have the simulator write its world's map (YAML + PGM) into the run folder for localization."""
-    if not plan.sim or plan.map_yaml or not service_available("sim"):
+    if not plan.sim or plan.map_yaml:
         return
     import subprocess
 
@@ -226,7 +211,7 @@ def resolve_fleet(plan: StackPlan) -> None:
         if plan.robot_count > 1 or plan.robot_slots:
             raise ValueError("several robots need the simulator (--sim)")
         return
-    from_world = world_robots(plan.world, plan.map_yaml) if service_available("sim") else []
+    from_world = world_robots(plan.world, plan.map_yaml)
     if plan.robot_count <= 1 and not plan.robot_slots and not from_world:
         return
     count = max(plan.robot_count, len(plan.robot_slots) or len(from_world))
@@ -252,7 +237,7 @@ class HealthWatch:
     """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set); with ``fleet``, every robot's
     (``agv/*/@health/*``), named ``<id>.<service>``."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, on_change, fleet: bool = False) -> None:  # noqa: ANN001
+    def __init__(self, session: zenoh.Session, keys: Keys, on_change, fleet: bool = False) -> None:
         self.alive: set[str] = set()
         self._on_change = on_change
         self._fleet = fleet
@@ -272,7 +257,7 @@ class HealthWatch:
         self._sub.undeclare()
 
 
-async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:  # noqa: ANN001
+async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:
     """Run the stack until SIGINT/SIGTERM; returns the exit code."""
     loop = asyncio.get_running_loop()
     if plan.external_router:  # a client like the services: the router may stop and come back
@@ -309,7 +294,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     try:
         where = "external router at" if plan.external_router else "router on"
         if plan.fleet:
-            robots = ", ".join(f"{r.id} at ({r.start[0]:.2f}, {r.start[1]:.2f}, {r.start[2]:.2f})" for r in plan.fleet)
+            robots = ", ".join(f"{r.id} at ({', '.join(f'{v:.2f}' for v in r.start or ())})" for r in plan.fleet)
             announce(f"zagv: {where} {plan.endpoint}, {len(plan.fleet)} robots: {robots}; run folder {plan.run_dir}")
         else:
             announce(f"zagv: {where} {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
@@ -345,7 +330,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     return code
 
 
-async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:  # noqa: ANN001
+async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:
     """Start every child, in the plan's order or (``start_seed``) in a random order with random delays."""
     specs = plan.children()
     if plan.start_seed is None:
