@@ -15,7 +15,7 @@ import pytest
 
 from proto import codec
 from proto.keys import Keys
-from proto.messages import Clock, Empty, GroundTruth, LaserScan, Reply, Twist2D
+from proto.messages import Clock, Empty, GroundTruth, LaserScan, Reply, Twist2D, WheelStates
 from tests.support.waiting import wait_for_sync
 
 RADIUS_M = 0.63
@@ -31,9 +31,13 @@ class Robot:
         self.sim_now = 0.0
         self.truth: GroundTruth | None = None
         self.scan: LaserScan | None = None
-        self._subs = [self._sub("clock", Clock, self._on_clock), self._sub("sim/ground_truth", GroundTruth,
-                                                                          lambda m: setattr(self, "truth", m)),
-                      self._sub("scan", LaserScan, lambda m: setattr(self, "scan", m))]
+        self.wheels: WheelStates | None = None
+        self._subs = [
+            self._sub("wheels", WheelStates, lambda m: setattr(self, "wheels", m)),
+            self._sub("clock", Clock, self._on_clock),
+            self._sub("sim/ground_truth", GroundTruth, lambda m: setattr(self, "truth", m)),
+            self._sub("scan", LaserScan, lambda m: setattr(self, "scan", m)),
+        ]
         self.cmd = session.declare_publisher(self.keys("cmd_vel"))
 
     def _sub(self, name: str, t: type, cb):  # noqa: ANN001, ANN202
@@ -76,7 +80,10 @@ def test_two_robots_see_each_other_and_a_push_is_a_contact_both_report(stack_fac
     expected = 2.4 - RADIUS_M - LASER_X_M
     assert r1.range_ahead_m(r1.sim_now) == pytest.approx(expected, abs=0.05)
     assert r2.range_ahead_m(r2.sim_now) == pytest.approx(expected, abs=0.05)
-    # each robot is its own stack: r1's drive enables and moves r1 only
+    # each robot is its own stack: r1's drive enables and moves r1 only (once its CAN link is up: the drive
+    # retries the link while a loaded machine keeps the emulated controllers from answering in time)
+    wait_for_sync(lambda: r1.wheels is not None and r1.wheels.link_ok, timeout_s=120,
+                  message="r1's drive never reported a live CAN link")
     assert r1.query("drive/enable").ok
     deadline = time.monotonic() + 120.0
     while not r1.truth.collided:  # r1 drives at r2 (no collision monitor in this subset) until they touch
