@@ -275,12 +275,14 @@ class Clock(Message):
 
 
 class GroundTruth(Message):
-    """True robot pose in the world (map) frame and true body twist; ``collided`` once it hits the world."""
+    """True robot pose in the world (map) frame and true body twist; ``collided`` once it hits the world or another
+    robot (latched until a teleport), ``contact_with`` what it touched: ``"wall"`` or the other robot's id."""
 
     stamp: float = 0.0
     pose: Pose2D = msgspec.field(default_factory=Pose2D)
     twist: Twist2D = msgspec.field(default_factory=Twist2D)
     collided: bool = False
+    contact_with: str = ""
 
 
 # --------------------------------------------------------------------------- queries

@@ -18,7 +18,7 @@ from services.common.bench import BenchRow
 
 def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
     """Every (group, function) pair, cheapest first as each module lists them."""
-    from services.cli import bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh
+    from services.cli import bench_fleet, bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh
     from services.drive import bench as drive_bench
     from services.hmi_api import bench as hmi_api_bench
     from services.lidar import bench as lidar_bench
@@ -27,7 +27,7 @@ def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
     from services.sim import bench as sim_bench
 
     modules = [bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh, drive_bench, hmi_api_bench,
-               lidar_bench, localization_bench, nav_bench, sim_bench]
+               lidar_bench, localization_bench, nav_bench, sim_bench, bench_fleet]
     return [group for module in modules for group in module.BENCHES]
 
 

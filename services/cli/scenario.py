@@ -434,6 +434,10 @@ def run(args: argparse.Namespace) -> int:
         sc.repeats = args.repeats
     if args.speed:
         sc.speed = args.speed
+    if sc.robots:
+        from services.cli.scenario_fleet import run_fleet
+
+        return run_fleet(sc, args)
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-scenario-"))
     run_dir.mkdir(parents=True, exist_ok=True)
     extra = ["--headless"]

@@ -83,14 +83,22 @@ def free_space(solid: np.ndarray, resolution_m: float, origin_xy: tuple[float, f
 
 
 def generate_goals(space: FreeSpace, n_goals: int, seed: int, start: tuple[float, float, float] | None = None, *,
-                   goal_clearance_m: float, min_leg_m: float = 3.0, max_leg_m: float = 20.0, min_spacing_m: float = 1.0
+                   goal_clearance_m: float, min_leg_m: float = 3.0, max_leg_m: float = 20.0, min_spacing_m: float = 1.0,
+                   avoid: list[tuple[float, ...]] | None = None, avoid_m: float = 0.0,
+                   rng: np.random.Generator | None = None,
                    ) -> tuple[tuple[float, float, float], list[tuple[float, float, float]]]:
-    """(start, goals) drawn as the module docstring says; GenerateError when the map cannot give them."""
-    rng = np.random.default_rng(seed)
+    """(start, goals) drawn as the module docstring says; a drawn start and the goals keep ``avoid_m`` from every
+    point of ``avoid`` (other robots' starts and goals); GenerateError when the map cannot give them."""
+    rng = rng or np.random.default_rng(seed)
     r0, r1, c0, c1 = space.box
     inside = np.zeros(space.region.shape, dtype=bool)
     inside[r0:r1, c0:c1] = True
     goal_ok = (space.clearance_m >= goal_clearance_m) & (space.region > 0) & inside
+    if avoid:
+        rr, cc = np.indices(space.region.shape)
+        cx, cy = space.centre(rr, cc)
+        for p in avoid:
+            goal_ok &= np.hypot(cx - p[0], cy - p[1]) >= avoid_m
     if start is None:
         sizes = np.bincount(space.region[goal_ok].ravel())
         if len(sizes) <= 1:
@@ -107,7 +115,8 @@ def generate_goals(space: FreeSpace, n_goals: int, seed: int, start: tuple[float
                             f"footprint (clearance {space.clearance_at(start[0], start[1]):.2f} m)")
     rows, cols = np.nonzero(goal_ok & (space.region == label))
     if len(rows) == 0:
-        raise GenerateError(f"no cell with {goal_clearance_m:.2f} m of clearance is connected to the start")
+        raise GenerateError(f"no cell with {goal_clearance_m:.2f} m of clearance is connected to the start"
+                            + (f" and {avoid_m:.2f} m from the other robots' starts and goals" if avoid else ""))
     xs, ys = space.centre(rows, cols)
     goals: list[tuple[float, float, float]] = []
     previous = start
@@ -138,6 +147,40 @@ def scenario_toml(name: str, source: str, start: tuple[float, float, float], goa
     return "\n".join(lines) + "\n"
 
 
+def generate_fleet(space: FreeSpace, n_robots: int, n_goals: int, seed: int,
+                   start: tuple[float, float, float] | None = None, *, robot_radius_m: float, goal_clearance_m: float,
+                   min_leg_m: float = 3.0, max_leg_m: float = 20.0, spacing_m: float = 0.6,
+                   ) -> list[tuple[tuple[float, float, float], list[tuple[float, float, float]]]]:
+    """(start, goals) per robot: robot 1 as ``generate_goals`` draws them; every further robot's start and goals
+    keep ``2 * robot_radius_m + spacing_m`` from every start and goal of the robots before it (two robots never
+    share a parking place), in the same drivable region as robot 1's start."""
+    rng = np.random.default_rng(seed)
+    separation = 2.0 * robot_radius_m + spacing_m
+    out: list[tuple[tuple[float, float, float], list[tuple[float, float, float]]]] = []
+    taken: list[tuple[float, ...]] = []
+    for k in range(n_robots):
+        s, goals = generate_goals(space, n_goals, seed, start if k == 0 else None, goal_clearance_m=goal_clearance_m,
+                                  min_leg_m=min_leg_m, max_leg_m=max_leg_m, avoid=taken, avoid_m=separation, rng=rng)
+        if k and space.region_at(s[0], s[1]) != space.region_at(out[0][0][0], out[0][0][1]):
+            raise GenerateError(f"robot {k + 1}'s start is not connected to robot 1's")
+        out.append((s, goals))
+        taken += [s, *goals]
+    return out
+
+
+def fleet_scenario_toml(name: str, source: str, robots: list[tuple[tuple[float, float, float],
+                                                                    list[tuple[float, float, float]]]],
+                        speed: float, description: str) -> str:
+    """A ``[[robots]]`` scenario (services/cli/scenario_fleet.py): ids r1, r2, ..."""
+    lines = [f"# {description}", f'name = "{name}"', source, f"speed = {speed:g}", ""]
+    for k, (start, goals) in enumerate(robots, 1):
+        lines += ["[[robots]]", f'id = "r{k}"', f"start = [{start[0]}, {start[1]}, {start[2]}]"]
+        for j, g in enumerate(goals, 1):
+            lines += ["[[robots.goals]]", f'id = "{j}"', f"pose = [{g[0]}, {g[1]}, {g[2]}]"]
+        lines.append("")
+    return "\n".join(lines)
+
+
 def map_label(map_yaml: str) -> str:
     """A short name for a map: the YAML's stem, or its folder's name when the stem says nothing ("map")."""
     p = Path(map_yaml)
@@ -154,14 +197,22 @@ def load_solid(map_yaml: str | None, world: str | None):
 def generate_file(out: Path, *, map_yaml: str | None = None, world: str | None = None, n_goals: int, seed: int,
                   start: tuple[float, float, float] | None = None, robot_radius_m: float = DEFAULT_ROBOT_RADIUS_M,
                   corridor_margin_m: float = DEFAULT_CORRIDOR_MARGIN_M, goal_margin_m: float = DEFAULT_GOAL_MARGIN_M,
-                  min_leg_m: float = 3.0, max_leg_m: float = 20.0, speed: float = 4.0, name: str = "") -> Path:
-    """Write a generated scenario to ``out``; returns it."""
+                  min_leg_m: float = 3.0, max_leg_m: float = 20.0, speed: float = 4.0, name: str = "",
+                  robots: int = 1) -> Path:
+    """Write a generated scenario to ``out`` (``robots`` > 1: a ``[[robots]]`` scenario); returns it."""
     w = load_solid(map_yaml, world)
     if start is None and world and not map_yaml:
         start = w.start_pose
     space = free_space(w.solid, w.resolution_m, w.origin_xy, robot_radius_m + corridor_margin_m)
-    start, goals = generate_goals(space, n_goals, seed, start, goal_clearance_m=robot_radius_m + goal_margin_m,
-                                  min_leg_m=min_leg_m, max_leg_m=max_leg_m)
+    fleet = None
+    if robots > 1:
+        fleet = generate_fleet(space, robots, n_goals, seed, start, robot_radius_m=robot_radius_m,
+                               goal_clearance_m=robot_radius_m + goal_margin_m, min_leg_m=min_leg_m,
+                               max_leg_m=max_leg_m)
+    else:
+        start_pose, goals = generate_goals(space, n_goals, seed, start,
+                                           goal_clearance_m=robot_radius_m + goal_margin_m, min_leg_m=min_leg_m,
+                                           max_leg_m=max_leg_m)
     out.parent.mkdir(parents=True, exist_ok=True)
     if map_yaml:
         mp = Path(map_yaml).resolve()
@@ -175,7 +226,12 @@ def generate_file(out: Path, *, map_yaml: str | None = None, world: str | None =
     label = name or f"{map_label(map_yaml) if map_yaml else world}_s{seed}"
     desc = (f"generated: {n_goals} goals, seed {seed}, clearance >= {robot_radius_m + goal_margin_m:.2f} m at the"
             f" goals, connected to the start through space >= {robot_radius_m + corridor_margin_m:.2f} m from walls")
-    out.write_text(scenario_toml(label, source, start, goals, speed, desc))
+    if fleet is not None:
+        desc = desc.replace("generated: ", f"generated: {robots} robots, ") + \
+            f"; every start and goal {2 * robot_radius_m + 0.6:.2f} m from the other robots'"
+        out.write_text(fleet_scenario_toml(label, source, fleet, speed, desc))
+    else:
+        out.write_text(scenario_toml(label, source, start_pose, goals, speed, desc))
     return out
 
 
@@ -195,6 +251,8 @@ def add_parser(ssub: argparse._SubParsersAction) -> None:
     gp.add_argument("--min-leg", type=float, default=3.0, help="m between consecutive goals (default %(default)s)")
     gp.add_argument("--max-leg", type=float, default=20.0, help="m between consecutive goals (default %(default)s)")
     gp.add_argument("--speed", type=float, default=4.0, help="sim speed factor written to the file")
+    gp.add_argument("--robots", type=int, default=1, help="robots (> 1: a [[robots]] scenario, ids r1..rN, --goals "
+                    "each, starts and goals 2 x radius + 0.6 m apart; default %(default)s)")
     gp.set_defaults(func=run_generate)
 
 
@@ -204,8 +262,8 @@ def run_generate(args: argparse.Namespace) -> int:
     if bool(args.map) == bool(args.world):
         print("zagv scenario generate: give a map YAML or --world NAME (one of them)", file=sys.stderr)
         return 2
-    if args.goals < 1:
-        print("zagv scenario generate: --goals must be >= 1", file=sys.stderr)
+    if args.goals < 1 or args.robots < 1:
+        print("zagv scenario generate: --goals and --robots must be >= 1", file=sys.stderr)
         return 2
     start: tuple[float, float, float] | None = None
     if args.start:
@@ -223,7 +281,7 @@ def run_generate(args: argparse.Namespace) -> int:
         generate_file(out, map_yaml=args.map, world=args.world, n_goals=args.goals, seed=args.seed, start=start,
                       robot_radius_m=args.robot_radius, corridor_margin_m=args.corridor_margin,
                       goal_margin_m=args.goal_margin, min_leg_m=args.min_leg, max_leg_m=args.max_leg,
-                      speed=args.speed)
+                      speed=args.speed, robots=args.robots)
     except (GenerateError, WorldError) as exc:
         print(f"zagv scenario generate: {exc}", file=sys.stderr)
         return 1

@@ -46,6 +46,8 @@ class Scenario:
     dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
     name: str = "scenario"
     mapping: Mapping | None = None
+    #: several robots in one world, each with its own start and goals (services/cli/scenario_fleet.py)
+    robots: list[ScenarioRobot] = field(default_factory=list)
 
 
 class ScenarioError(ValueError):
@@ -95,7 +97,7 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{p}: cannot read: {exc.strerror or exc}") from None
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
-    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description",
+    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description", "robots",
              "mapping"}
     unknown = sorted(set(data) - known)
     if unknown:
@@ -112,16 +114,15 @@ def load_scenario(path: str | Path) -> Scenario:
                                 f" folder: {', '.join(map(str, candidates))})")
         map_yaml = str(found[0])
     goals_raw = data.get("goals", [])
-    if not goals_raw:
+    robots = []
+    if "robots" in data:
+        if goals_raw or "mapping" in data or "dynamic_obstacles" in data:
+            raise ScenarioError(f"{p}: with [[robots]], goals go in each robot's [[robots.goals]] (no top-level "
+                                "goals, mapping or dynamic_obstacles)")
+        robots = load_robots(data["robots"], p)
+    elif not goals_raw:
         raise ScenarioError(f"{p}: no [[goals]]")
-    goals = []
-    for k, g in enumerate(goals_raw, 1):
-        if "pose" not in g:
-            raise ScenarioError(f"{p}: goals[{k}] has no pose")
-        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
-        if extra:
-            raise ScenarioError(f"{p}: goals[{k}]: unknown key(s) {', '.join(extra)}")
-        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"goals[{k}].pose")))
+    goals = parse_goals(goals_raw, p, "goals")
     obstacles = []
     for k, o in enumerate(data.get("dynamic_obstacles", []), 1):
         extra = sorted(set(o) - {"rect", "during_goal", "appear_after_s"})
@@ -144,7 +145,65 @@ def load_scenario(path: str | Path) -> Scenario:
         raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
     mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
     return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
-                    speed, obstacles, name, mapping)
+                    speed, obstacles, name, mapping, robots)
+
+
+def parse_goals(goals_raw: Any, p: Path, what: str) -> list[Goal]:
+    """``[[goals]]`` entries (``pose``, optional ``id``) -> Goals; ScenarioError naming ``what[k]``."""
+    if not isinstance(goals_raw, list):
+        raise ScenarioError(f"{p}: {what} must be an array of tables, got {goals_raw!r}")
+    goals = []
+    for k, g in enumerate(goals_raw, 1):
+        if not isinstance(g, dict) or "pose" not in g:
+            raise ScenarioError(f"{p}: {what}[{k}] has no pose")
+        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
+        if extra:
+            raise ScenarioError(f"{p}: {what}[{k}]: unknown key(s) {', '.join(extra)}")
+        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"{what}[{k}].pose")))
+    return goals
+
+
+ROBOT_KEYS = {"id", "start", "goals", "start_after_s"}
+
+
+@dataclass
+class ScenarioRobot:
+    """One robot of a fleet scenario: its id, start pose, goals (in order) and delay before its first goal."""
+
+    id: str
+    start: tuple[float, float, float]
+    goals: list[Goal]
+    start_after_s: float = 0.0
+
+
+def load_robots(raw: Any, p: Path) -> list[ScenarioRobot]:
+    """The ``[[robots]]`` array; ScenarioError naming the entry and key."""
+    if not isinstance(raw, list) or not raw:
+        raise ScenarioError(f"{p}: robots must be a non-empty array of tables ([[robots]])")
+    robots = []
+    for k, r in enumerate(raw, 1):
+        if not isinstance(r, dict):
+            raise ScenarioError(f"{p}: robots[{k}] must be a table")
+        extra = sorted(set(r) - ROBOT_KEYS)
+        if extra:
+            raise ScenarioError(f"{p}: robots[{k}]: unknown key(s) {', '.join(extra)}; known: "
+                                f"{', '.join(sorted(ROBOT_KEYS))}")
+        rid = r.get("id")
+        if not isinstance(rid, str) or not rid or any(c in rid for c in "/*$?#: "):
+            raise ScenarioError(f"{p}: robots[{k}].id must be a robot id (no / * $ ? # : or spaces), got {rid!r}")
+        if "start" not in r:
+            raise ScenarioError(f"{p}: robots[{k}] ({rid}) has no start")
+        goals = parse_goals(r.get("goals", []), p, f"robots[{k}].goals")
+        if not goals:
+            raise ScenarioError(f"{p}: robots[{k}] ({rid}) has no [[robots.goals]]")
+        delay = r.get("start_after_s", 0.0)
+        if isinstance(delay, bool) or not isinstance(delay, int | float) or not 0.0 <= delay < math.inf:
+            raise ScenarioError(f"{p}: robots[{k}].start_after_s must be a number >= 0, got {delay!r}")
+        robots.append(ScenarioRobot(rid, _pose(r["start"], f"robots[{k}].start"), goals, float(delay)))
+    ids = [r.id for r in robots]
+    if len(set(ids)) != len(ids):
+        raise ScenarioError(f"{p}: robot ids must be distinct, got {', '.join(ids)}")
+    return robots
 
 
 # --------------------------------------------------------------------------- results

@@ -11,6 +11,7 @@ import contextlib
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -25,17 +26,39 @@ from services.common.settings import ZenohSettings
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
+def free_port_block(n: int) -> int:
+    """The first of ``n`` consecutive free loopback ports (a fleet's robot k uses base + k)."""
+    if n <= 1:
+        return free_port()
+    for _ in range(200):
+        base = free_port()
+        if base + n > 65535:
+            continue
+        try:
+            with contextlib.ExitStack() as held:
+                for p in range(base, base + n):
+                    sock = held.enter_context(socket.socket())
+                    sock.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+    raise RuntimeError(f"no block of {n} free ports on 127.0.0.1")
+
+
 class Stack:
     """One ``zagv up`` process and what the test needs to talk to it."""
 
     def __init__(self, run_dir: Path, services: list[str] | None = None, *, sim: bool = True,
                  world: str = "corridor", map_yaml: str | None = None, speed: float = 1.0,
-                 extra_args: list[str] | None = None, robot_id: str = "r1") -> None:
+                 extra_args: list[str] | None = None, robot_id: str = "r1", fleet_size: int = 1) -> None:
+        """``fleet_size`` > 1: room for that many robots (``--robots``/``--robot`` in ``extra_args``): each robot
+        k gets the base CAN, LMS111 and HMI ports + k."""
         self.run_dir = run_dir
         self.services = services
         self.robot_id = robot_id
         self.keys = Keys(robot_id)
-        self.zenoh_port, self.can_port, self.lidar_port, self.http_port = (free_port() for _ in range(4))
+        self.zenoh_port = free_port()
+        self.can_port, self.lidar_port, self.http_port = (free_port_block(fleet_size) for _ in range(3))
         self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
         self.argv = [sys.executable, "-m", "services.cli", "up", "--robot-id", robot_id,
                      "--zenoh-port", str(self.zenoh_port), "--can-port", str(self.can_port),

@@ -13,6 +13,7 @@ import contextlib
 import os
 import random
 import signal
+import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ import zenoh
 
 from proto.keys import Keys
 from services.cli.common import print_line
+from services.cli.fleet import RobotSlot, fleet_slots, parse_robot_arg, resolve_starts, sim_robots_toml, world_robots
 from services.cli.supervisor import ChildSpec, Supervisor, python_module
 from services.common.lifetime import die_with_parent
 from services.common.session import open_session, router_settings
@@ -65,6 +67,12 @@ class StackPlan:
     mqtt_port: int = 1883
     mqtt_embedded: bool = True
 
+    #: several robots in one world (services/cli/fleet.py): ``robot_count`` (--robots), explicit ``robot_slots``
+    #: (--robot); ``fleet`` is the resolved list (ids and start poses), empty for the single robot of ``robot_id``
+    robot_count: int = 1
+    robot_slots: list[RobotSlot] = field(default_factory=list)
+    fleet: list[RobotSlot] = field(default_factory=list)
+
     @property
     def endpoint(self) -> str:
         return self.external_router or f"tcp/127.0.0.1:{self.zenoh_port}"
@@ -72,6 +80,17 @@ class StackPlan:
     @property
     def can_channel(self) -> str:
         return f"ws://127.0.0.1:{self.can_port}/"
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return [s.id for s in self.fleet] or [self.robot_id]
+
+    def robot_run_dir(self, k: int) -> str:
+        """Robot k's state folder: the run folder itself for a single robot, ``<run folder>/<id>`` in a fleet."""
+        return str(Path(self.run_dir) / self.fleet[k].id) if self.fleet else self.run_dir
+
+    def child_name(self, k: int, service: str) -> str:
+        return f"{self.fleet[k].id}.{service}" if self.fleet else service
 
     def services(self) -> list[str]:
         names = list(SERVICES)
@@ -87,42 +106,60 @@ class StackPlan:
             names = [s for s in names if s in self.only]
         return names
 
-    def common_args(self) -> list[str]:
-        args = ["--connect", self.endpoint, "--robot-id", self.robot_id]
+    def expected_tokens(self) -> set[str]:
+        """The health tokens ``zagv: ready`` waits for, named as ``HealthWatch`` names them (the simulator
+        raises one per robot)."""
+        if not self.fleet:
+            return set(self.services())
+        return {f"{rid}.{name}" for rid in self.robot_ids for name in self.services()}
+
+    def common_args(self, k: int = 0) -> list[str]:
+        args = ["--connect", self.endpoint, "--robot-id", self.robot_ids[k]]
         if self.config:
             args += ["--config", self.config]
         if self.sim:
             args += ["--use-sim-time"]
         return args
 
-    def service_sets(self, name: str) -> list[str]:
-        """``--set`` overrides that wire a service to this plan's ports and files."""
+    def service_sets(self, name: str, k: int = 0) -> list[str]:
+        """``--set`` overrides that wire a service (of robot k in a fleet) to this plan's ports and files."""
         sets: list[str] = []
+        run_dir = self.robot_run_dir(k)
+        can_channel = f"ws://127.0.0.1:{self.can_port + k}/"
         if name == "sim":
             sets += [f"sim.can_channel={_toml_str(self.can_channel)}", f"sim.lidar_port={self.lidar_port}",
                      f"sim.speed_factor={self.speed}"]
             sets += [f"sim.map_yaml={_toml_str(self.map_yaml)}"] if self.map_yaml else \
                 [f"sim.world={_toml_str(self.world)}"]
+            if self.fleet:
+                n = len(self.fleet)
+                sets += ["sim.robots=" + sim_robots_toml(self.fleet, [f"ws://127.0.0.1:{self.can_port + i}/"
+                                                                      for i in range(n)],
+                                                         [self.lidar_port + i for i in range(n)])]
         elif name == "drive":
             if self.sim:
-                sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(self.can_channel)}"]
+                sets += ["drive.can_interface=\"remote\"", f"drive.can_channel={_toml_str(can_channel)}"]
             if "safety" not in self.services():  # a subset without the collision monitor (benches, tests)
                 sets += ["drive.command_source=\"cmd_vel\""]
         elif name == "lidar" and self.sim:
-            sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port}"]
+            sets += ["lidar.host=\"127.0.0.1\"", f"lidar.port={self.lidar_port + k}"]
         elif name == "localization":
             map_yaml = self.map_yaml or (str(Path(self.run_dir) / "world.yaml") if self.sim else None)
             if map_yaml:
                 sets += [f"localization.map_yaml={_toml_str(map_yaml)}"]
-            sets += [f"localization.state_dir={_toml_str(self.run_dir)}"]
+            sets += [f"localization.state_dir={_toml_str(run_dir)}"]
             if self.mapping:
                 sets += ["localization.mode=\"mapping\""]
+            start = self.fleet[k].start if self.fleet else None
+            if start is not None:  # each robot of a fleet starts where the simulator put it
+                sets += [f"localization.initial_pose_x={start[0]!r}", f"localization.initial_pose_y={start[1]!r}",
+                         f"localization.initial_pose_yaw={start[2]!r}"]
         elif name == "recorder":
-            sets += [f"recorder.state_dir={_toml_str(self.run_dir)}"]
+            sets += [f"recorder.state_dir={_toml_str(run_dir)}"]
         elif name == "foxglove_bridge":
-            sets += [f"foxglove.port={self.foxglove_port}"]
+            sets += [f"foxglove.port={self.foxglove_port + k}"]
         elif name == "hmi_api":
-            sets += [f"hmi_api.port={self.http_port}", f"hmi_api.state_dir={_toml_str(self.run_dir)}"]
+            sets += [f"hmi_api.port={self.http_port + k}", f"hmi_api.state_dir={_toml_str(run_dir)}"]
         elif name == "vda5050" and self.mqtt_embedded:
             sets += ["vda5050.broker_host=\"127.0.0.1\"", f"vda5050.broker_port={self.mqtt_port}"]
         prefix = f"{name}."
@@ -132,15 +169,22 @@ class StackPlan:
     def children(self) -> list[ChildSpec]:
         env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
         specs = []
+        robots = range(len(self.robot_ids))
         if self.sim:
-            specs.append(ChildSpec("canbus", python_module("services.sim.canbus", "--port", str(self.can_port)),
-                                   env=env))
+            for k in robots:
+                specs.append(ChildSpec(self.child_name(k, "canbus"),
+                                       python_module("services.sim.canbus", "--port", str(self.can_port + k)), env=env))
         if "vda5050" in self.services() and self.mqtt_embedded:
             specs.append(ChildSpec("mqtt", python_module("services.vda5050.broker", "--port", str(self.mqtt_port)),
                                    env=env))
         for name in self.services():
-            argv = python_module(f"services.{name}", *self.common_args(), *self.service_sets(name))
-            specs.append(ChildSpec(name, argv, env=env))
+            if name == "sim":  # one simulator for every robot: one world, one clock
+                specs.append(ChildSpec(name, python_module("services.sim", *self.common_args(0),
+                                                           *self.service_sets(name, 0)), env=env))
+                continue
+            for k in robots:
+                argv = python_module(f"services.{name}", *self.common_args(k), *self.service_sets(name, k))
+                specs.append(ChildSpec(self.child_name(k, name), argv, env=env))
         return specs
 
 
@@ -160,16 +204,49 @@ def render_world_map(plan: StackPlan) -> None:
     )
 
 
-class HealthWatch:
-    """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set)."""
+def resolve_fleet(plan: StackPlan) -> None:
+    """Fill ``plan.fleet`` (ids and start poses) when several robots are asked for: ``--robots N``, ``--robot``,
+    or a built-in world with ``[[robots]]``. A single robot leaves the plan as it is."""
+    if not plan.sim:
+        if plan.robot_count > 1 or plan.robot_slots:
+            raise ValueError("several robots need the simulator (--sim)")
+        return
+    from_world = world_robots(plan.world, plan.map_yaml)
+    if plan.robot_count <= 1 and not plan.robot_slots and not from_world:
+        return
+    count = max(plan.robot_count, len(plan.robot_slots) or len(from_world))
+    slots = fleet_slots(count, plan.robot_slots, from_world)
+    plan.fleet = resolve_starts(slots, plan.world, plan.map_yaml, _chassis_radius_m(plan.config))
 
-    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:
+
+def _chassis_radius_m(config: str | None) -> float:
+    from services.common.robot import RobotSpec
+
+    radius = RobotSpec().chassis_radius_m
+    if config:
+        import tomllib
+
+        with open(config, "rb") as f:
+            data = tomllib.load(f)
+        radius = float(data.get("robot", {}).get("chassis_radius_m", radius))
+        radius = float(data.get("sim", {}).get("footprint_radius_m", 0.0)) or radius
+    return radius
+
+
+class HealthWatch:
+    """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set); with ``fleet``, every robot's
+    (``agv/*/@health/*``), named ``<id>.<service>``."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, on_change, fleet: bool = False) -> None:
         self.alive: set[str] = set()
         self._on_change = on_change
-        self._sub = session.liveliness().declare_subscriber(keys.health_all, self._on_sample, history=True)
+        self._fleet = fleet
+        key = keys.health_all.replace(f"/{keys.robot_id}/", "/*/", 1) if fleet else keys.health_all
+        self._sub = session.liveliness().declare_subscriber(key, self._on_sample, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        parts = str(sample.key_expr).split("/")
+        name = f"{parts[1]}.{parts[-1]}" if self._fleet else parts[-1]
         if sample.kind == zenoh.SampleKind.PUT:
             self.alive.add(name)
         else:
@@ -187,8 +264,15 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         router = open_session(ZenohSettings(mode="client", connect=[plan.endpoint]))
     else:
         router = open_session(router_settings([plan.endpoint]))
-    keys = Keys(plan.robot_id)
-    expected = set(plan.services())
+    try:
+        await loop.run_in_executor(None, resolve_fleet, plan)
+    except (ValueError, OSError) as exc:
+        announce(f"zagv: cannot start the robots: {exc}")
+        router.close()
+        return 2
+    keys = Keys(plan.robot_ids[0])
+    ready_timeout_s *= max(1, len(plan.fleet))  # every robot's stack starts on the same machine
+    expected = plan.expected_tokens()
     ready = asyncio.Event()
     stop = asyncio.Event()
     was_ready = False
@@ -202,14 +286,18 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
                 announce(f"zagv: {name} {'healthy again' if up else 'lost its health token'}")
         loop.call_soon_threadsafe(update)
 
-    watch = HealthWatch(router, keys, on_change)
+    watch = HealthWatch(router, keys, on_change, fleet=bool(plan.fleet))
     supervisor = Supervisor()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     code = 0
     try:
         where = "external router at" if plan.external_router else "router on"
-        announce(f"zagv: {where} {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
+        if plan.fleet:
+            robots = ", ".join(f"{r.id} at ({', '.join(f'{v:.2f}' for v in r.start or ())})" for r in plan.fleet)
+            announce(f"zagv: {where} {plan.endpoint}, {len(plan.fleet)} robots: {robots}; run folder {plan.run_dir}")
+        else:
+            announce(f"zagv: {where} {plan.endpoint}, robot {plan.robot_id}, run folder {plan.run_dir}")
         await loop.run_in_executor(None, render_world_map, plan)
         await start_children(plan, supervisor, stop, announce)
         started = time.monotonic()
@@ -221,8 +309,10 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         if ready.is_set():
             was_ready = True
             announce(f"zagv: ready ({', '.join(sorted(expected))} healthy in {time.monotonic() - started:.1f} s)")
-            if "hmi_api" in expected:
-                announce(f"zagv: HMI at http://127.0.0.1:{plan.http_port}/")
+            if "hmi_api" in plan.services():
+                for k, rid in enumerate(plan.robot_ids):
+                    who = f" of {rid}" if plan.fleet else ""
+                    announce(f"zagv: HMI{who} at http://127.0.0.1:{plan.http_port + k}/")
         elif not stop.is_set():
             missing = sorted(expected - watch.alive)
             announce(f"zagv: not ready after {ready_timeout_s:.0f} s; missing: {', '.join(missing)}")
@@ -248,8 +338,8 @@ async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.
             supervisor.add(spec)
         return
     rng = random.Random(plan.start_seed)
-    hardware = [s for s in specs if s.name == "canbus"]
-    services = [s for s in specs if s.name != "canbus"]
+    hardware = [s for s in specs if s.name.endswith("canbus")]
+    services = [s for s in specs if not s.name.endswith("canbus")]
     rng.shuffle(services)
     delays = [rng.uniform(0.0, plan.start_delay_max_s) for _ in services]
     announce("zagv: start order " + ", ".join(f"{s.name} +{d:.1f} s" for s, d in zip(services, delays)))
@@ -274,6 +364,12 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--headless", action="store_true", help="no HMI (hmi_api not started)")
     p.add_argument("--mapping", action="store_true", help="start localization in SLAM (mapping) mode")
     p.add_argument("--robot-id", default="r1", help="robot id (default %(default)s)")
+    p.add_argument("--robots", type=int, default=1, metavar="N",
+                   help="with --sim: N robots in the one world, ids r1..rN (or the world's [[robots]]), each a full "
+                        "stack; robot k uses the CAN, LMS111, HMI and Foxglove base ports + k")
+    p.add_argument("--robot", action="append", default=[], metavar="ID[:X,Y,THETA]",
+                   help="with --sim: a robot of the world with its start pose (repeatable; without a pose it is "
+                        "placed next to the others)")
     p.add_argument("--zenoh-port", type=int, default=7447, help="router TCP port on 127.0.0.1 (default %(default)s)")
     p.add_argument("--external-router", metavar="ENDPOINT",
                    help="connect everything to this running router (e.g. tcp/127.0.0.1:7447 of `zagv router`) "
@@ -310,6 +406,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         start_seed=getattr(args, "start_seed", None), start_delay_max_s=getattr(args, "start_delay_max", 0.0),
         vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
         mqtt_embedded=not getattr(args, "no_embedded_broker", False),
+        robot_count=getattr(args, "robots", 1), robot_slots=[parse_robot_arg(r) for r in getattr(args, "robot", [])],
     )
 
 
@@ -321,7 +418,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     die_with_parent()  # started by a tool's Stack (scenario, bench, tests): stop when that tool dies
-    plan = plan_from_args(args)
+    try:
+        plan = plan_from_args(args)
+    except ValueError as exc:
+        print(f"zagv up: {exc}", file=sys.stderr)
+        return 2
     with contextlib.suppress(KeyboardInterrupt):
         return asyncio.run(run_stack(plan, announce=print_line))
     return 130

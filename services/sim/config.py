@@ -5,6 +5,18 @@ from __future__ import annotations
 import msgspec
 
 
+class SimRobot(msgspec.Struct, forbid_unknown_fields=True):
+    """One robot of a multi-robot world (``[[sim.robots]]``): its id (the ``<id>`` of ``agv/<id>/...``), its start
+    ``start_pose`` [x, y, theta] (empty: placed by ``services.sim.fleet.start_poses``), its own CAN bus
+    ``can_channel``, its own LMS111 port ``lidar_port`` and its IMU pty ``imu_link`` ("" = no IMU)."""
+
+    id: str
+    can_channel: str
+    lidar_port: int
+    start_pose: list[float] = msgspec.field(default_factory=list)
+    imu_link: str = ""
+
+
 class SimConfig(msgspec.Struct, forbid_unknown_fields=True):
     """Simulator settings (``[sim]``). Times are simulated seconds unless named ``wall``.
 
@@ -17,6 +29,8 @@ class SimConfig(msgspec.Struct, forbid_unknown_fields=True):
     Motor units (paper eq. 7, 8): ``wheel_radius_m`` R, ``gear_ratio`` J, ``traction_cpr`` counts per traction
     motor revolution, ``steer_counts_per_rev`` N counts per wheel steering revolution, ``steer_zero_counts`` P0
     per module, ``steer_cpr`` counts per steering motor revolution (relates steering rpm to counts).
+    Several robots: ``robots`` (``[[sim.robots]]``, SimRobot) replaces the one robot of ``start_pose``,
+    ``can_channel``, ``lidar_port`` and ``imu_link``; every robot shares the world and the clock.
     """
 
     can_channel: str = "ws://127.0.0.1:54701/"
@@ -64,6 +78,7 @@ class SimConfig(msgspec.Struct, forbid_unknown_fields=True):
     imu_gyro_bias_radps: float = 0.0005
     imu_gyro_noise_radps: float = 0.002
     footprint_radius_m: float = 0.0  # 0: [robot] chassis_radius_m
+    robots: list[SimRobot] = msgspec.field(default_factory=list)  # several robots in one world (empty: one robot)
 
     def check(self) -> None:
         """Raise ValueError naming the first unusable value."""
@@ -85,3 +100,11 @@ class SimConfig(msgspec.Struct, forbid_unknown_fields=True):
         need(self.watchdog_ms >= 0 and self.heartbeat_ms >= 0, "watchdog_ms and heartbeat_ms must be >= 0")
         need(0.0 <= self.slip_ratio < 1.0, "slip_ratio must be in [0, 1)")
         need(self.imu_rate_hz > 0, "imu_rate_hz must be > 0")
+        ids = [r.id for r in self.robots]
+        need(len(set(ids)) == len(ids), f"robots: ids must be distinct, got {ids}")
+        for r in self.robots:
+            need(bool(r.id) and not any(c in r.id for c in "/*$?#"),
+                 f"robots: id {r.id!r} must be a non-empty key chunk without / * $ ? #")
+            need(len(r.start_pose) in (0, 3), f"robots: {r.id}: start_pose must be [] or [x, y, theta]")
+        ports = [r.lidar_port for r in self.robots]
+        need(len(set(ports)) == len(ports), f"robots: lidar ports must be distinct, got {ports}")

@@ -29,14 +29,19 @@ import select
 import time
 import tty
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import can
 
+from proto.keys import Keys
 from proto.messages import Clock, GroundTruth, ObstacleReply, ObstacleRequest, Pose2D, Reply, TeleportRequest, Twist2D
 from services.common.clock import SimClock
+from services.common.node import Node, TopicPublisher
+from services.common.robot import RobotSpec
 from services.common.service import ServiceContext
 from services.sim.config import SimConfig
+from services.sim.fleet import Fleet, start_poses
 from services.sim.lms111 import Lms111Emulator
 from services.sim.pacing import Pacer
 from services.sim.simulation import Simulation
@@ -220,12 +225,16 @@ class ImuPty:
                 os.close(fd)
 
 
-def teleport_reply(sim: Simulation, req: TeleportRequest) -> Reply:
+def teleport_reply(sim: Simulation, req: TeleportRequest, fleet: Fleet | None = None, rid: str = "") -> Reply:
     """``sim/teleport``: move the robot (clears the collision latch); non-finite poses are refused."""
     p = req.pose
-    if not sim.teleport(p.x, p.y, p.theta):
+    ok = fleet.teleport(rid, p.x, p.y, p.theta) if fleet is not None else sim.teleport(p.x, p.y, p.theta)
+    if not ok:
         return Reply(ok=False, message=f"teleport: pose must be finite, got ({p.x}, {p.y}, {p.theta})")
-    note = " (in collision: the robot cannot move deeper)" if sim.robot.collided else ""
+    if fleet is not None and sim.robot.collided:
+        note = f" (in contact with {fleet.contact_with[rid]}: the robot cannot move deeper)"
+    else:
+        note = " (in collision: the robot cannot move deeper)" if sim.robot.collided else ""
     return Reply(ok=True, message=f"robot at ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
 
 
@@ -249,92 +258,166 @@ def obstacles_reply(world: World, req: ObstacleRequest) -> ObstacleReply:
     return ObstacleReply(ok=True, message=msg, ids=world.active_obstacle_ids())
 
 
-class SimService:
-    """The simulator's devices (CAN nodes, LMS111, Razor IMU) and topics around a Simulation."""
+@dataclass
+class RobotIo:
+    """One simulated robot's I/O: its Zenoh node (keys ``agv/<id>/...``), publishers and devices."""
 
-    def __init__(self, ctx: ServiceContext, sim: Simulation, world: World) -> None:
+    rid: str
+    sim: Simulation
+    node: Node
+    clock_pub: TopicPublisher
+    truth_pub: TopicPublisher
+    link: CanLink
+    lidar_port: int
+    imu_link: str
+    imu: ImuPty | None = None
+    lidar: Lms111Emulator | None = None
+
+
+class SimService:
+    """The simulator's devices (CAN nodes, LMS111, Razor IMU) and topics around one Simulation per robot: one
+    robot, or a fleet (``[[sim.robots]]``, services.sim.fleet) sharing the world and the clock, each robot under
+    its own keys with its own health token."""
+
+    def __init__(self, ctx: ServiceContext, sims: dict[str, Simulation], world: World,
+                 fleet: Fleet | None = None) -> None:
         cfg: SimConfig = ctx.config["sim"]
-        self.ctx, self.cfg, self.node, self.sim, self.world = ctx, cfg, ctx.node, sim, world
+        self.ctx, self.cfg, self.node, self.world, self.fleet = ctx, cfg, ctx.node, world, fleet
+        self.sims = sims
+        self.first = next(iter(sims.values()))
         self.clock = SimClock()
         self.clock.advance(0.0, cfg.speed_factor)
         self.node.clock = self.clock  # stats report sim time; this service never follows the clock topic
-        # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same
-        self.clock_pub = self.node.publisher("clock")
-        self.truth_pub = self.node.publisher("sim/ground_truth")
-        self.node.queryable("sim/teleport", lambda req: teleport_reply(sim, req))
-        self.node.queryable("sim/obstacles", lambda req: obstacles_reply(world, req))
-        self.link = CanLink(sim, cfg.can_interface, cfg.can_channel)
-        self.imu: ImuPty | None = None
-        self.lidar: Lms111Emulator | None = None
+        hardware = {r.id: r for r in cfg.robots}
+        self.robots: list[RobotIo] = []
+        for rid, sim in sims.items():
+            # the service's own node for its own robot id, one more node (same session) per other robot
+            node = self.node if rid == ctx.robot.robot_id else Node(self.node.name, self.node.session, Keys(rid))
+            node.clock = self.clock  # set after construction: a node built on a SimClock would follow `clock`
+            hw = hardware.get(rid)
+            # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same
+            io = RobotIo(rid, sim, node, node.publisher("clock"), node.publisher("sim/ground_truth"),
+                         CanLink(sim, cfg.can_interface, hw.can_channel if hw else cfg.can_channel),
+                         hw.lidar_port if hw else cfg.lidar_port, hw.imu_link if hw else cfg.imu_link)
+            node.queryable("sim/teleport", self._teleporter(sim, rid))
+            node.queryable("sim/obstacles", lambda req: obstacles_reply(world, req))
+            self.robots.append(io)
         self.clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
         self.truth_every = max(1, round(1.0 / cfg.ground_truth_hz / cfg.step_s))
         self.imu_every = max(1, round(1.0 / cfg.imu_rate_hz / cfg.step_s))
         self.stats: dict[str, float] = {"speed_factor": 0.0, "behind": 0}
         self.node.extra_stats["sim"] = self.stats
 
+    def _teleporter(self, sim: Simulation, rid: str) -> Callable[[TeleportRequest], Reply]:
+        return lambda req: teleport_reply(sim, req, self.fleet, rid)
+
+    def contact_of(self, io: RobotIo) -> str:
+        if self.fleet is not None:
+            return self.fleet.contact_with[io.rid]
+        return "wall" if io.sim.robot.collided else ""
+
     async def start_devices(self) -> None:
         cfg, node = self.cfg, self.node
-        if cfg.imu_link:
+        for io in self.robots:
+            if io.imu_link:
+                try:
+                    io.imu = ImuPty(io.sim, io.imu_link)
+                except OSError as exc:
+                    node.log.error("Razor IMU of %s disabled: cannot create %s: %s", io.rid, io.imu_link, exc)
             try:
-                self.imu = ImuPty(self.sim, cfg.imu_link)
-            except OSError as exc:
-                node.log.error("Razor IMU disabled: cannot create %s: %s", cfg.imu_link, exc)
-        try:
-            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, self.sim.scan_source, self.clock,
-                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
-                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
-            await lidar.start()
-            self.lidar = lidar
-        except (OSError, ValueError, TypeError) as exc:
-            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
+                # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
+                lidar = Lms111Emulator(cfg.lidar_host, io.lidar_port, io.sim.scan_source, self.clock,
+                                       frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
+                                       range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
+                await lidar.start()
+                io.lidar = lidar
+            except (OSError, ValueError, TypeError) as exc:
+                node.log.error("LMS111 emulator of %s not started on %s:%d: %s", io.rid, cfg.lidar_host,
+                               io.lidar_port, exc)
+
+    def ready(self, inputs: str) -> None:
+        for io in self.robots:
+            io.node.ready(inputs)
+
+    def step(self) -> dict[str, list[tuple[int, bytes]]]:
+        if self.fleet is not None:
+            return self.fleet.step()
+        io = self.robots[0]
+        return {io.rid: io.sim.step()}
 
     def publish_step(self, achieved: float) -> None:
         """After step k: the clock every ``clock_every`` steps (and the world's obstacle schedule), the ground
-        truth every ``truth_every``, the IMU every ``imu_every``."""
-        sim, k = self.sim, self.sim.steps
-        self.clock.advance(sim.now_s, achieved)
+        truth every ``truth_every``, the IMU every ``imu_every``, for every robot."""
+        first = self.first
+        k, now_s = first.steps, first.now_s
+        self.clock.advance(now_s, achieved)
         if k % self.clock_every == 0:
-            self.clock_pub.put(Clock(stamp=sim.now_s, speed_factor=achieved))
+            tick = Clock(stamp=now_s, speed_factor=achieved)
+            for io in self.robots:
+                io.clock_pub.put(tick)
             if self.world.dynamic:
-                self.world.apply_schedule(sim.now_s)
+                self.world.apply_schedule(now_s)
         if k % self.truth_every == 0:
-            r = sim.robot
-            self.truth_pub.put(GroundTruth(stamp=sim.now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
-                                           twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=sim.now_s),
-                                           collided=r.collided))
-        if self.imu is not None and k % self.imu_every == 0:
-            self.imu.tick()
+            for io in self.robots:
+                r = io.sim.robot
+                io.truth_pub.put(GroundTruth(stamp=now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
+                                             twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=now_s),
+                                             collided=r.collided, contact_with=self.contact_of(io)))
+        if k % self.imu_every == 0:
+            for io in self.robots:
+                if io.imu is not None:
+                    io.imu.tick()
 
     async def run(self) -> None:
-        sim, link = self.sim, self.link
+        first = self.first
         # wall time below is the sim's own pacing reference (it is the clock master), not robot timing
-        pacer = Pacer(self.cfg.speed_factor, time.monotonic(), sim.now_s)
+        pacer = Pacer(self.cfg.speed_factor, time.monotonic(), first.now_s)
         next_connect = 0.0
         while not self.ctx.stop.is_set():
             now_wall = time.monotonic()
-            if link.bus is None and now_wall >= next_connect:
-                if link.connect():
-                    link.send(sim.boot())  # power-on (again after a lost bus): boot-up messages
-                else:
-                    next_connect = now_wall + 0.5
-            wait = pacer.wait_s(now_wall, sim.now_s, sim.dt, sim.steps)
+            if now_wall >= next_connect:
+                for io in self.robots:
+                    if io.link.bus is None:
+                        if io.link.connect():
+                            io.link.send(io.sim.boot())  # power-on (again after a lost bus): boot-up messages
+                        else:
+                            next_connect = now_wall + 0.5
+            wait = pacer.wait_s(now_wall, first.now_s, first.dt, first.steps)
             if wait is not None:
                 await asyncio.sleep(wait)
-            link.poll()
-            link.send(sim.step())
+            for io in self.robots:
+                io.link.poll()
+            frames = self.step()
+            for io in self.robots:
+                io.link.send(frames[io.rid])
             self.publish_step(pacer.achieved)
-            if pacer.measure(now_wall, sim.now_s):
-                self.stats.update(speed_factor=round(pacer.achieved, 3), behind=pacer.behind, can_rx=link.rx,
-                                  can_tx=link.tx, sim_s=round(sim.now_s, 3))
+            if pacer.measure(now_wall, first.now_s):
+                self.stats.update(speed_factor=round(pacer.achieved, 3), behind=pacer.behind,
+                                  can_rx=sum(io.link.rx for io in self.robots),
+                                  can_tx=sum(io.link.tx for io in self.robots), sim_s=round(first.now_s, 3))
 
     async def close(self) -> None:
-        if self.lidar is not None:
-            with contextlib.suppress(Exception):
-                await self.lidar.stop()
-        if self.imu is not None:
-            self.imu.close()
-        self.link.close()
+        for io in self.robots:
+            if io.lidar is not None:
+                with contextlib.suppress(Exception):
+                    await io.lidar.stop()
+            if io.imu is not None:
+                io.imu.close()
+            io.link.close()
+
+
+def build(cfg: SimConfig, robot: RobotSpec, world: World) -> tuple[dict[str, Simulation], Fleet | None]:
+    """One Simulation for the robot of ``robot``, or a Fleet for ``[[sim.robots]]`` (starts given or placed)."""
+    if not cfg.robots:
+        return {robot.robot_id: Simulation(cfg, robot, world)}, None
+    cfg.check()
+    radius = cfg.footprint_radius_m or robot.chassis_radius_m
+    given = [(r.start_pose[0], r.start_pose[1], r.start_pose[2]) for r in cfg.robots if r.start_pose]
+    if len(given) not in (0, len(cfg.robots)):
+        raise ValueError("[sim] robots: give every robot a start_pose or none")
+    starts = start_poses(world, len(cfg.robots), radius, given or [p for _, p in world.robots])
+    fleet = Fleet(cfg, robot, world, [r.id for r in cfg.robots], starts)
+    return fleet.sims, fleet
 
 
 async def run(ctx: ServiceContext) -> None:
@@ -342,16 +425,17 @@ async def run(ctx: ServiceContext) -> None:
     node = ctx.node
     try:
         world = load_world(cfg.world, cfg.map_yaml)
-        sim = Simulation(cfg, ctx.robot, world)
+        sims, fleet = build(cfg, ctx.robot, world)
     except (WorldError, ValueError) as exc:
         node.log.error("cannot start: %s", exc)
         raise SystemExit(2) from None
-    node.log.info("world %s (%dx%d cells at %.3f m), robot at (%.2f, %.2f, %.2f)%s", world.name, world.shape[1],
-                  world.shape[0], world.resolution_m, sim.robot.x, sim.robot.y, sim.robot.theta,
-                  " IN COLLISION" if sim.robot.collided else "")
-    service = SimService(ctx, sim, world)
+    for rid, sim in sims.items():
+        node.log.info("world %s (%dx%d cells at %.3f m), robot %s at (%.2f, %.2f, %.2f)%s", world.name,
+                      world.shape[1], world.shape[0], world.resolution_m, rid, sim.robot.x, sim.robot.y,
+                      sim.robot.theta, " IN COLLISION" if sim.robot.collided else "")
+    service = SimService(ctx, sims, world, fleet)
     await service.start_devices()
-    node.ready("world loaded, CAN bus and LMS111 emulation up")
+    service.ready("world loaded, CAN bus and LMS111 emulation up")
     try:
         await service.run()
     finally:

@@ -70,6 +70,8 @@ class World:
     dynamic: dict[str, DynamicObstacle] = field(default_factory=dict)
     #: solid cells the lidar sees through (glass walls and doors): they stop the robot, not the beams
     glass: np.ndarray | None = None
+    #: the robots of a multi-robot world (``[[robots]]`` with ``id`` and ``start`` [x, y, theta]), in order
+    robots: list[tuple[str, tuple[float, float, float]]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.resolution_m <= 0 or not math.isfinite(self.resolution_m):
@@ -345,11 +347,12 @@ class World:
                 dynamic[oid] = DynamicObstacle(oid, _check_rect(d["rect"], f"dynamic obstacle {oid}"),
                                                active=bool(d.get("active", False)),
                                                appear_at_s=d.get("appear_at_s"), vanish_at_s=d.get("vanish_at_s"))
+            robots = [_robot_entry(r, k, source) for k, r in enumerate(data.get("robots", []), 1)]
             return cls.from_rectangles(
                 str(data["name"]), float(data["resolution_m"]), data["extent_m"], data.get("free", []),
                 data.get("obstacles", []), data.get("glass", []),
                 start_pose=tuple(map(float, data.get("start_pose", (0.0, 0.0, 0.0)))),
-                goals=goals, dynamic=dynamic)
+                goals=goals, dynamic=dynamic, robots=robots)
         except KeyError as exc:
             raise WorldError(f"{source}: missing key {exc}") from None
         except (TypeError, ValueError) as exc:
@@ -413,6 +416,20 @@ def load_world(world: str = "", map_yaml: str = "") -> World:
     if map_yaml:
         return World.load_map_yaml(map_yaml)
     return World.load_builtin(world or "corridor")
+
+
+def _robot_entry(raw, k: int, source: str) -> tuple[str, tuple[float, float, float]]:  # noqa: ANN001
+    """One ``[[robots]]`` entry: ``id`` (a key chunk) and ``start`` [x, y, theta] (finite)."""
+    if not isinstance(raw, dict) or set(raw) - {"id", "start"} or "id" not in raw or "start" not in raw:
+        raise WorldError(f"{source}: robots[{k}] must have exactly `id` and `start` [x, y, theta], got {raw!r}")
+    rid = str(raw["id"])
+    if not rid or any(c in rid for c in "/*$?#"):
+        raise WorldError(f"{source}: robots[{k}].id {rid!r} must be a non-empty key chunk without / * $ ? #")
+    start = raw["start"]
+    if not (isinstance(start, list) and len(start) == 3 and all(isinstance(v, int | float) for v in start)
+            and all(math.isfinite(v) for v in start)):
+        raise WorldError(f"{source}: robots[{k}].start must be finite [x, y, theta], got {start!r}")
+    return rid, (float(start[0]), float(start[1]), float(start[2]))
 
 
 def _pose3(values: list[float]) -> tuple[float, float, float]:
