@@ -6,8 +6,9 @@
   per processed scan), ``tf/map_odom`` (latched, every scan) and the growing ``map`` (latched, every
   ``map_publish_period_s``).
 - navigation: ``LocalizationNode`` (map server + AMCL), fed by this dispatcher.
-Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) into the
-maps folder and replies with the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
+Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) and
+``<name>.trajectory.txt`` (every scan's pose, as ``zagv map build`` writes it) into the maps folder and replies with
+the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
 whose frame starts at the current pose), or to navigation on ``map_yaml`` (the name of a map in the maps folder,
 never a path; empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/
 ``nomotion`` are answered by AMCL (refused while mapping).
@@ -42,7 +43,7 @@ from services.localization.config import LocalizationConfig
 from services.localization.map_io import MapError, OccupancyMap, load_map
 from services.localization.node import LocalizationNode, OdomHistory, Outputs
 from services.localization.slam.live import LiveMapper
-from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map
+from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map, write_trajectory
 from services.localization.slam.mapper import SlamConfig, scan_to_points
 from services.localization.slam.occupancy import OccupancyGrid
 
@@ -106,8 +107,11 @@ class MappingNode:
     def on_scan(self, msg: LaserScan) -> None:
         """Keeps only the newest scan and handles it once the event loop has delivered what was queued before it:
         when mapping falls behind (a loaded machine, a keyframe with a loop search), older scans are dropped
-        instead of queueing up."""
+        instead of queueing up. With ``mapping_sync`` every scan is handled, in order (a replayed log)."""
         self.stats["scans"] += 1
+        if self.cfg.mapping_sync:
+            self._handle_scan(msg)
+            return
         if self._newest_scan is not None:
             self.stats["dropped_behind"] = self.stats.get("dropped_behind", 0) + 1
         else:
@@ -176,7 +180,7 @@ class MappingNode:
             self._map_dirty = True
             self._publish_pose(scan.stamp)
         else:
-            self.mapper.skipped += 1
+            self.mapper.note_skipped(scan.stamp, odom)
             self.stats["skipped"] = self.mapper.skipped
         self._publish_tf(scan.stamp)
         self.maybe_publish_map()
@@ -312,6 +316,7 @@ class ModeSwitcher:
             return Reply(ok=False, message="no map yet: no scan has been processed")
         try:
             path = write_ros_map(grid, folder, req.name).resolve()
+            write_trajectory(folder / f"{req.name}.trajectory.txt", *self.mapping.mapper.trajectory())
         except OSError as exc:
             return Reply(ok=False, message=f"cannot write the map into {folder}: {exc}")
         self.last_saved = path
