@@ -17,6 +17,7 @@ never a path; empty: the last saved map), starting AMCL at the current pose. ``i
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import math
 import time
@@ -77,6 +78,8 @@ class MappingNode:
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
         self._newest_scan: LaserScan | None = None
+        self._inbox: collections.deque[Odometry | LaserScan] = collections.deque()  # mapping_sync
+        self._drain_scheduled = False
         self.stats: dict[str, float] = {"scans": 0, "processed": 0, "skipped": 0, "bad_scans": 0,
                                         "keyframes": 0, "loop_closures": 0, "loop_closures_rejected": 0,
                                         "scan_match_fallbacks": 0, "cpu_ms_per_processed_scan": 0.0,
@@ -95,6 +98,12 @@ class MappingNode:
         return float(p[0]), float(p[1]), float(p[2])
 
     def on_odom(self, msg: Odometry) -> None:
+        if self.cfg.mapping_sync:
+            self._enqueue(msg)
+            return
+        self._take_odom(msg)
+
+    def _take_odom(self, msg: Odometry) -> None:
         p = msg.pose
         if not all(math.isfinite(v) for v in (msg.stamp, p.x, p.y, p.theta)):
             self.stats["bad_odom"] = self.stats.get("bad_odom", 0) + 1
@@ -110,13 +119,33 @@ class MappingNode:
         instead of queueing up. With ``mapping_sync`` every scan is handled, in order (a replayed log)."""
         self.stats["scans"] += 1
         if self.cfg.mapping_sync:
-            self._handle_scan(msg)
+            self._enqueue(msg)
             return
         if self._newest_scan is not None:
             self.stats["dropped_behind"] = self.stats.get("dropped_behind", 0) + 1
         else:
             asyncio.get_running_loop().call_soon(self._take_newest_scan)
         self._newest_scan = msg
+
+    def _enqueue(self, msg: Odometry | LaserScan) -> None:
+        """Synchronous mode: odom and scans are handled in arrival order, at most one scan per turn of the event
+        loop (its timers and the liveness heartbeat run in between however long the backlog grows)."""
+        self._inbox.append(msg)
+        self.stats["sync_backlog_max"] = max(self.stats.get("sync_backlog_max", 0), len(self._inbox))
+        if not self._drain_scheduled:
+            self._drain_scheduled = True
+            asyncio.get_running_loop().call_soon(self._drain)
+
+    def _drain(self) -> None:
+        while self._inbox:
+            msg = self._inbox.popleft()
+            if isinstance(msg, LaserScan):
+                self._handle_scan(msg)
+                break
+            self._take_odom(msg)
+        self._drain_scheduled = bool(self._inbox)
+        if self._drain_scheduled:
+            asyncio.get_running_loop().call_soon(self._drain)
 
     def _take_newest_scan(self) -> None:
         msg, self._newest_scan = self._newest_scan, None
