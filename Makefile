@@ -19,6 +19,7 @@ run: install
 
 test: install
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 	$(BIN)/python -m proto.schema --check
 	$(BIN)/python -m proto.keytable --check
 	$(BIN)/python -m tools.servicedoc --check
@@ -29,6 +30,7 @@ test-long: install
 
 lint: install
 	$(BIN)/ruff check .
+	$(BIN)/mypy
 
 bench: install
 	$(BIN)/zagv bench
@@ -37,4 +39,4 @@ schema: install
 	$(BIN)/python -m proto.schema
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache

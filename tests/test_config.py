@@ -42,8 +42,8 @@ def test_syntax_error_and_missing_file(tmp_path):
 def test_defaults_and_clamp():
     robot = convert_section({}, "robot", RobotSpec)
     assert robot.chassis_radius_m == 0.63 and len(robot.modules) == 2
-    assert robot.clamp_twist(1.0, -1.0, float("nan")) == (0.2, -0.2, 0.0)
-    assert robot.clamp_twist(float("inf"), 0.1, -9.0) == (0.0, 0.1, -0.5)
+    assert robot.twist_limits().clamp(1.0, -1.0, float("nan")) == (0.2, -0.2, 0.0)
+    assert robot.twist_limits().clamp(float("inf"), 0.1, -9.0) == (0.0, 0.1, -0.5)
     assert convert_section({}, "zenoh", ZenohSettings).connect == ["tcp/127.0.0.1:7447"]
 
 

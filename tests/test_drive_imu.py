@@ -77,7 +77,7 @@ def test_imu_from_the_simulator_is_published_and_fused(stack_factory, tmp_path) 
     for name, t, sink in (("imu", Imu, imu), ("odom", Odometry, odom)):
         key = stack.keys(name)
 
-        def cb(sample, t=t, sink=sink, key=key) -> None:  # noqa: ANN001
+        def cb(sample, t=t, sink=sink, key=key) -> None:
             with lock:
                 sink.append(codec.decode_as(t, sample.payload.to_bytes(), key))
 

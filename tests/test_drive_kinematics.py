@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.common.robot import RobotSpec
+from services.common.robot import RobotSpec, TwistLimits
+from services.common.se2 import wrap_angle
 from services.drive.kinematics import (
     ModuleState,
     SteeringLimits,
@@ -17,9 +18,7 @@ from services.drive.kinematics import (
     cosine_scale,
     desaturate,
     optimize,
-    wrap_angle,
 )
-from services.drive.limits import TwistLimits
 from services.drive.odometry import Pose, arc_pose
 from services.drive.units import MotorUnits
 
@@ -132,34 +131,26 @@ def test_cosine_scaling_and_desaturation() -> None:
     assert desaturate(same, 0.5) == tuple(same)
 
 
-@given(st.floats(-100, 100))
-def test_wrap_angle_range(a: float) -> None:
-    w = wrap_angle(a)
-    assert -math.pi <= w < math.pi
-    assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-9) and math.isclose(math.sin(w), math.sin(a),
-                                                                                 abs_tol=1e-9)
-
-
 # --------------------------------------------------------------------------- limits
 
 
 def test_twist_limits_clamp_and_accelerate() -> None:
-    lim = TwistLimits.from_robot(ROBOT)
-    assert lim.clamp(Twist(1.0, -1.0, 9.0)) == Twist(0.2, -0.2, 0.5)
-    assert lim.clamp(Twist(-1.0, math.nan, math.inf)) == Twist(-0.1, 0.0, 0.0)
-    t = lim.accelerate(Twist(), Twist(0.2, 0.2, 0.5), 0.1)
-    assert t == Twist(pytest.approx(0.05), pytest.approx(0.05), pytest.approx(0.1))
-    assert lim.accelerate(t, Twist(0.2, 0.2, 0.5), 0.0) == t
-    assert lim.stopping_time_s(Twist(0.2, 0.0, 0.5)) == pytest.approx(0.5)
+    lim = ROBOT.twist_limits()
+    assert lim.clamp(1.0, -1.0, 9.0) == (0.2, -0.2, 0.5)
+    assert lim.clamp(-1.0, math.nan, math.inf) == (-0.1, 0.0, 0.0)
+    t = lim.accelerate((0.0, 0.0, 0.0), (0.2, 0.2, 0.5), 0.1)
+    assert t == pytest.approx((0.05, 0.05, 0.1))
+    assert lim.accelerate(t, (0.2, 0.2, 0.5), 0.0) == t
+    assert lim.accelerate(t, (0.2, 0.2, 0.5), math.nan) == t
 
 
 @given(twists, twists, st.floats(1e-4, 0.05))
 def test_acceleration_limit_never_exceeded(cur: Twist, target: Twist, dt: float) -> None:
     lim = TwistLimits()
-    nxt = lim.accelerate(cur, target, dt)
-    assert abs(nxt.vx - cur.vx) <= lim.ax_max_mps2 * dt + 1e-12
-    assert abs(nxt.vy - cur.vy) <= lim.ay_max_mps2 * dt + 1e-12
-    assert abs(nxt.wz - cur.wz) <= lim.alpha_max_radps2 * dt + 1e-12
+    vx, vy, wz = lim.accelerate((cur.vx, cur.vy, cur.wz), (target.vx, target.vy, target.wz), dt)
+    assert abs(vx - cur.vx) <= lim.ax_max_mps2 * dt + 1e-12
+    assert abs(vy - cur.vy) <= lim.ay_max_mps2 * dt + 1e-12
+    assert abs(wz - cur.wz) <= lim.alpha_max_radps2 * dt + 1e-12
 
 
 # --------------------------------------------------------------------------- odometry
@@ -221,7 +212,7 @@ def _controller_parts():
     from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
 
     units = [MotorUnits(), MotorUnits()]
-    return DriveController(KIN, units, TwistLimits.from_robot(ROBOT)), WheelOdometry(KIN, units), ModuleFeedback
+    return DriveController(KIN, units, ROBOT.twist_limits()), WheelOdometry(KIN, units), ModuleFeedback
 
 
 def test_wheel_odometry_integrates_counts_across_wrap_and_rejects_jumps() -> None:

@@ -91,11 +91,11 @@ def rig() -> Iterator[Rig]:
         yield r
 
 
-def link_settings(rig: Rig, **kw) -> LinkSettings:  # noqa: ANN003
+def link_settings(rig: Rig, **kw) -> LinkSettings:
     return LinkSettings(interface="virtual", channel=rig.channel, **kw)
 
 
-def make_loop(rig: Rig, **kw) -> DriveLoop:  # noqa: ANN003
+def make_loop(rig: Rig, **kw) -> DriveLoop:
     cfg = DriveConfig(can_interface="virtual", can_channel=rig.channel, rate_hz=200.0, spin_s=0.0, **kw)
     return build_loop(ROBOT, cfg, WallTicker(cfg.rate_hz, cfg.spin_s))
 

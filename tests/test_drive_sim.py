@@ -26,6 +26,7 @@ from proto.messages import (
     Twist2D,
     WheelStates,
 )
+from services.common.se2 import between, wrap_angle
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
@@ -33,18 +34,10 @@ pytestmark = pytest.mark.integration
 SPEED = 4.0  # sim seconds per wall second
 
 
-def relative(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """Pose b expressed in the frame of pose a (x, y, theta)."""
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dth = math.atan2(math.sin(b[2] - a[2]), math.cos(b[2] - a[2]))
-    return (c * dx + s * dy, -s * dx + c * dy, dth)
-
-
 class Driver:
     """Test-side robot operator: latest clock, odom, ground truth and wheels; streams cmd_vel on the sim clock."""
 
-    def __init__(self, stack) -> None:  # noqa: ANN001 - tests.support.stack.Stack
+    def __init__(self, stack) -> None:  # tests.support.stack.Stack
         self.stack = stack
         self.session = stack.session()
         self.keys = stack.keys
@@ -67,7 +60,7 @@ class Driver:
         wait_for_sync(lambda: self.odom is not None and self.truth is not None and self.wheels is not None
                       and self.wheels.link_ok, timeout_s=30, message="drive never reported a live CAN link")
 
-    def _sub(self, name: str, t: type, cb):  # noqa: ANN001, ANN202
+    def _sub(self, name: str, t: type, cb):
         key = self.keys(name)
         return self.session.declare_subscriber(key, lambda s: cb(codec.decode_as(t, s.payload.to_bytes(), key)))
 
@@ -119,7 +112,7 @@ class Driver:
         """Drive straight along the body's x (axis 0) or y (axis 1) by ``dist_m`` as odometry measures it."""
         start = self.odom_pose()
         deadline = time.monotonic() + dist_m / 0.2 / SPEED * 4 + 20
-        while (remaining := dist_m - relative(start, self.odom_pose())[axis]) > 0.002:
+        while (remaining := dist_m - between(start, self.odom_pose())[axis]) > 0.002:
             v = min(0.2, max(0.01, gain * remaining))
             self.send(v, 0.0, 0.0) if axis == 0 else self.send(0.0, v, 0.0)
             time.sleep(0.01)
@@ -130,13 +123,13 @@ class Driver:
         """Turn in place by ``angle_rad`` as odometry measures it."""
         start = self.odom_pose()
         deadline = time.monotonic() + abs(angle_rad) / 0.5 / SPEED * 4 + 20
-        while abs(err := angle_rad - relative(start, self.odom_pose())[2]) > 0.002:
+        while abs(err := angle_rad - between(start, self.odom_pose())[2]) > 0.002:
             self.send(0.0, 0.0, math.copysign(min(0.5, max(0.02, gain * abs(err))), err))
             time.sleep(0.01)
             assert time.monotonic() < deadline, "turn() did not arrive"
         self.settle(0.8)
 
-    def drive_until(self, vx: float, cond, timeout_s: float = 20.0) -> None:  # noqa: ANN001
+    def drive_until(self, vx: float, cond, timeout_s: float = 20.0) -> None:
         """Stream (vx, 0, 0) until ``cond()`` holds."""
         deadline = time.monotonic() + timeout_s
         while not cond():
@@ -185,11 +178,11 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
         d.turn(math.pi / 2)
         odom, true = d.poses()
         assert not d.truth.collided
-        ro, rt = relative(odom0, odom), relative(true0, true)
+        ro, rt = between(odom0, odom), between(true0, true)
         travelled = d.path_m - path0
         err = math.hypot(ro[0] - rt[0], ro[1] - rt[1])
         assert err <= 0.01 * travelled, f"odometry off by {err:.3f} m after {travelled:.2f} m: {ro} vs {rt}"
-        assert abs(math.atan2(math.sin(ro[2] - rt[2]), math.cos(ro[2] - rt[2]))) < 0.02
+        assert abs(wrap_angle(ro[2] - rt[2])) < 0.02
     assert d.path_m - path0 > 9.5
     assert d.wheels.slip_residual_mps < 0.02  # slip off: the wheels agree with a rigid body
 
@@ -197,7 +190,7 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     odom0, true0 = d.poses()
     d.forward(1.0, axis=1)
     odom, true = d.poses()
-    rt, ro = relative(true0, true), relative(odom0, odom)
+    rt, ro = between(true0, true), between(odom0, odom)
     # how far past 1 m it coasts depends on this test's command latency (wall time, machine load), not on the
     # drive: the drive is judged by the odometry agreeing with the truth, and by the motion staying sideways
     assert rt[1] >= 0.98 and abs(rt[0]) < 0.02 and abs(rt[2]) < 0.01
@@ -207,7 +200,7 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     odom0, true0 = d.poses()
     d.turn(-1.5)
     odom, true = d.poses()
-    rt, ro = relative(true0, true), relative(odom0, odom)
+    rt, ro = between(true0, true), between(odom0, odom)
     assert math.hypot(rt[0], rt[1]) < 0.02 and rt[2] == pytest.approx(-1.5, abs=0.02)
     assert abs(ro[2] - rt[2]) < 0.01
 
@@ -282,7 +275,7 @@ def test_drive_killed_controllers_stop_through_their_watchdog(stack_factory) -> 
     keep_sending_until(d, lambda: d.speed() >= 0.15, timeout_s=30, message="no motion after the explicit enable")
 
 
-def keep_sending_until(d: Driver, cond, *, timeout_s: float, message: str) -> float:  # noqa: ANN001
+def keep_sending_until(d: Driver, cond, *, timeout_s: float, message: str) -> float:
     """Stream cmd_vel (0.2 m/s forward) until ``cond()``; returns the sim time it held."""
     deadline = time.monotonic() + timeout_s
     while not cond():
@@ -364,7 +357,7 @@ def test_estop_release_disable_enable_queries(stack_factory) -> None:
     d = Driver(stack)
     d.teleport(-4.0, 0.0, 0.0)
 
-    def keep_driving_until(cond) -> None:  # noqa: ANN001
+    def keep_driving_until(cond) -> None:
         d.drive_until(0.1, cond)
 
     keep_driving_until(lambda: d.speed() > 0.09)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from proto import messages as m
-from services.cli.stack_process import Stack, free_port
+from services.cli.stack_process import Stack
+from services.common.ports import free_port
 from services.common.robot import RobotSpec
 from services.foxglove_bridge import convert
 

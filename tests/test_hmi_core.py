@@ -15,7 +15,7 @@ from proto.messages import LaserScan, OccupancyGrid, Odometry, Pose2D, PoseWithC
 from services.hmi_api import auth
 from services.hmi_api.jog import JogGate
 from services.hmi_api.posedb import SCHEMA_VERSION, PoseDb, PoseDbError, PoseNotFound
-from services.hmi_api.view import RobotView, VelocityRecorder, compose, grid_png
+from services.hmi_api.view import RobotView, VelocityRecorder, grid_png
 
 
 @pytest.fixture
@@ -134,7 +134,6 @@ def test_view_map_pose_scan_and_nan_free_status():
     v.map_odom = Transform2D(x=10.0, y=0.0, theta=0.0)
     (x, y, th), frame = v.robot_pose()
     assert frame == "map" and (x, y, th) == pytest.approx((11.0, 0.0, math.pi / 2))
-    assert compose((0, 0, math.pi / 2), (1, 0, 0)) == pytest.approx((0, 1, math.pi / 2))
     ranges = np.array([1.0, np.inf, 2.0, np.nan], dtype="<f4")
     v.scan = LaserScan(angle_min=0.0, angle_increment=math.pi / 2, range_min=0.05, range_max=20.0,
                        ranges=ranges.tobytes(), mount=Pose2D(x=0.5))

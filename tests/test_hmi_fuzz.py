@@ -40,13 +40,13 @@ def reject_constant(name: str) -> None:
     raise ValueError(f"{name} in JSON output")
 
 
-def fuzz_operation(op, mode, url, token, statuses, problems, allow_unavailable):  # noqa: ANN001, ANN201
+def fuzz_operation(op, mode, url, token, statuses, problems, allow_unavailable):
     """A hypothesis test over one operation: call it, count the status, record any server error or NaN."""
 
     @settings(max_examples=EXAMPLES.get(op.path, 12), deadline=None, database=None, derandomize=True,
               suppress_health_check=list(HealthCheck))
     @given(case=op.as_strategy(generation_mode=mode))
-    def run(case):  # noqa: ANN001, ANN202
+    def run(case):
         response = case.call(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=10)
         statuses[(f"{op.method.upper()} {op.path}", response.status_code)] += 1
         text = response.content.decode("utf-8", "replace")  # /api/map.png is binary
@@ -79,7 +79,7 @@ def rss_mb(pid: int) -> float:
         return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:")) / 1024
 
 
-def fuzz_odd_bodies(url: str, token: str, operations: list, statuses, problems) -> None:  # noqa: ANN001
+def fuzz_odd_bodies(url: str, token: str, operations: list, statuses, problems) -> None:
     """Send ``ODD_BODIES`` to every operation; anything but a 4xx (or a 503 naming a robot service) is a problem."""
     with HmiClient(url) as client:
         client.headers["authorization"] = f"Bearer {token}"

@@ -31,7 +31,7 @@ class CircleRoom:
     """A round room of ``radius_m`` whose centre is at (cx, cy) in the laser frame, with a doorway (no return)
     between ``door_rad`` angles. ``laser_ranges`` solves |p + t d| = R for the beam direction d."""
 
-    def __init__(self, clock, radius_m: float = 6.0, centre=(-0.8, 1.5), door_rad=(-0.5, -0.3)) -> None:  # noqa: ANN001
+    def __init__(self, clock, radius_m: float = 6.0, centre=(-0.8, 1.5), door_rad=(-0.5, -0.3)) -> None:
         self.clock = clock
         self.radius_m = radius_m
         self.centre = np.asarray(centre, dtype=float)
@@ -64,7 +64,7 @@ def check_ranges(ls, room: CircleRoom, noise_m: float) -> None:
 async def lms():
     emulators: list[Lms111Emulator] = []
 
-    async def make(clock=None, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:  # noqa: ANN001, ANN003
+    async def make(clock=None, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:
         clock = clock or WallClock()
         room = CircleRoom(clock)
         emu = Lms111Emulator("127.0.0.1", 0, room, clock, **kwargs)

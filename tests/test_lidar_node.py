@@ -19,7 +19,7 @@ from proto.keys import Keys
 from proto.messages import LaserScan, Pose2D
 from services.common.clock import WallClock
 from services.common.node import Node
-from services.common.session import open_session, router_settings
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.sim.lms111 import Lms111Emulator
 from tests.support.stack import free_port as new_free_port
@@ -28,14 +28,6 @@ from tests.test_lidar_emulator import CircleRoom, check_ranges
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.integration
-
-
-@pytest.fixture
-def router(free_port):
-    endpoint = f"tcp/127.0.0.1:{free_port}"
-    session = open_session(router_settings([endpoint]))
-    yield endpoint
-    session.close()
 
 
 @pytest.fixture
@@ -92,7 +84,7 @@ async def scans(router):
         s.close()
 
 
-def log_of(proc) -> str:  # noqa: ANN001
+def log_of(proc) -> str:
     return Path(proc.log_path).read_text(errors="replace")[-3000:]
 
 
@@ -100,7 +92,7 @@ def median_period_s(msgs: list[LaserScan]) -> float:
     return float(np.median(np.diff([m.stamp for m in msgs])))
 
 
-async def start_emulator(port: int, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:  # noqa: ANN003
+async def start_emulator(port: int, **kwargs) -> tuple[Lms111Emulator, CircleRoom]:
     clock = WallClock()
     room = CircleRoom(clock)
     emu = Lms111Emulator("127.0.0.1", port, room, clock, **kwargs)
@@ -163,7 +155,7 @@ async def lidar_in_process(router):
 
     running = []
 
-    async def start(robot_id: str, **config) -> LidarNode:  # noqa: ANN003
+    async def start(robot_id: str, **config) -> LidarNode:
         session = open_session(ZenohSettings(connect=[router]))
         node = Node("lidar", session, Keys(robot_id))
         lidar = LidarNode(node, LidarConfig(**config), Pose2D(x=0.3))

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from services.common.se2 import compose, inverse
 from services.localization.amcl import (
     Amcl,
     AmclParams,
@@ -14,13 +15,11 @@ from services.localization.amcl import (
     ScanBeams,
     beam_indices,
     cluster_labels,
-    compose,
-    inverse,
     kld_limit,
     select_beams,
 )
 from services.localization.map_io import OccupancyMap
-from services.localization.node import OdomHistory
+from services.localization.odom_history import OdomHistory
 from services.localization.synthetic import Laser, World
 
 

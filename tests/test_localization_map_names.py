@@ -37,7 +37,7 @@ def mapping_stack(tmp_path_factory: pytest.TempPathFactory):
         stack.stop()
 
 
-def _query(stack: Stack, name: str, request, timeout_s: float = 5.0):  # noqa: ANN001, ANN202
+def _query(stack: Stack, name: str, request, timeout_s: float = 5.0):
     """One query, retried while no queryable answers yet (the health token may precede the queryables)."""
     session = stack.session()
     deadline = time.monotonic() + 30.0
@@ -50,7 +50,7 @@ def _query(stack: Stack, name: str, request, timeout_s: float = 5.0):  # noqa: A
             time.sleep(0.1)
 
 
-def _mode(stack: Stack, map_name: str):  # noqa: ANN202
+def _mode(stack: Stack, map_name: str):
     return _query(stack, "localization/mode", ModeRequest(mode="navigation", map_yaml=map_name))
 
 

@@ -30,7 +30,7 @@ from proto.messages import (
     Twist2D,
 )
 from services.common.node import Node
-from services.localization.amcl import wrap_angle
+from services.common.se2 import wrap_angle
 from services.localization.map_io import FREE, OCCUPIED, load_map
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
 from services.localization.slam.map_files import read_trajectory
@@ -237,7 +237,7 @@ async def test_map_the_corridor_driving_through_the_drive_service(stack_factory,
                 bx, by = c * dx + s * dy, -s * dx + c * dy  # the error in the body frame
                 scale = min(1.0, (spec.vx_max_mps if bx > 0 else -spec.vx_min_mps) / max(abs(bx), 1e-9),
                             spec.vy_max_mps / max(abs(by), 1e-9))
-                vx, vy, wz = spec.clamp_twist(scale * bx, scale * by, 1.5 * dth)
+                vx, vy, wz = spec.twist_limits().clamp(scale * bx, scale * by, 1.5 * dth)
                 cmd.put(Twist2D(vx=vx, vy=vy, wz=wz))
                 await asyncio.sleep(0.05)
         cmd.put(Twist2D())

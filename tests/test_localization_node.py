@@ -25,9 +25,9 @@ from proto.messages import (
     Transform2D,
 )
 from services.common.node import Node
-from services.common.session import open_session, router_settings
+from services.common.se2 import compose
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
-from services.localization.amcl import compose
 from services.localization.map_io import save_map
 from services.localization.synthetic import Laser, World, route
 from tests.support.waiting import wait_for
@@ -42,14 +42,6 @@ def small_world() -> World:
     free = np.array([[0.0, 0.0, 12.0, 5.0], [4.0, 5.0, 6.0, 6.5]])
     obstacles = np.array([[2.0, 1.0, 2.6, 1.6], [8.0, 3.0, 9.0, 3.4]])
     return World(free, obstacles, (-0.5, -0.5, 12.5, 7.0), 0.05)
-
-
-@pytest.fixture
-def router(free_port):
-    endpoint = f"tcp/127.0.0.1:{free_port}"
-    session = open_session(router_settings([endpoint]))
-    yield endpoint
-    session.close()
 
 
 class Service:

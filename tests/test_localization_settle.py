@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.common.se2 import wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.config import LocalizationConfig
 from services.localization.map_io import OccupancyMap, load_map
@@ -50,7 +51,7 @@ def settle_at(world: World, grid: OccupancyMap, pose: tuple[float, float, float]
         scans += 1
     est = amcl.estimate
     assert est is not None
-    turn = abs(math.remainder(est.pose[2] - pose[2], math.tau))
+    turn = abs(wrap_angle(est.pose[2] - pose[2]))
     return settler.converged, math.hypot(est.pose[0] - pose[0], est.pose[1] - pose[1]), turn, scans
 
 

@@ -16,7 +16,7 @@ import pytest
 
 from proto.messages import Empty, GroundTruth, Odometry, Twist2D
 from services.common.node import Node
-from services.localization.amcl import compose, wrap_angle
+from services.common.se2 import compose, wrap_angle
 from services.localization.synthetic import TABLE3_ROUTE
 from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
@@ -77,7 +77,7 @@ async def test_amcl_tracks_the_robot_driven_along_the_table3_route(stack_factory
     """sim + drive + lidar + localization: the robot is driven by cmd_vel (a test-side P controller on the ground
     truth, within the Table 2 limits) from the start through goals 1, 2 and 3; odometry is the drive's."""
     from services.common.robot import RobotSpec
-    from services.localization.node import OdomHistory
+    from services.localization.odom_history import OdomHistory
 
     stack = stack_factory(services=["sim", "drive", "lidar", "localization"], world="corridor", speed=2.0).start()
     node = Node("loc-drive-test", stack.session(), stack.keys)
@@ -123,7 +123,7 @@ async def test_amcl_tracks_the_robot_driven_along_the_table3_route(stack_factory
                 # one scale for both axes keeps the direction of travel (per-axis clamping would curve the path)
                 scale = min(1.0, (spec.vx_max_mps if bx > 0 else -spec.vx_min_mps) / max(abs(bx), 1e-9),
                             spec.vy_max_mps / max(abs(by), 1e-9))
-                vx, vy, wz = spec.clamp_twist(scale * bx, scale * by, 1.5 * dth)
+                vx, vy, wz = spec.twist_limits().clamp(scale * bx, scale * by, 1.5 * dth)
                 cmd.put(Twist2D(vx=vx, vy=vy, wz=wz))
                 await asyncio.sleep(0.05)
         cmd.put(Twist2D())

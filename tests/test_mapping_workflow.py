@@ -22,13 +22,10 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.up import service_available
-
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(1200)]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SCENARIO = REPO_ROOT / "scenarios" / "corridor_table3_built_map.toml"
-NEEDED = ["sim", "drive", "lidar", "localization", "nav"]
 LOCALIZATION_LINE = re.compile(r"goal (\S+): reached error .* \(localization estimate - truth: ([-+.\d]+), ([-+.\d]+), "
                                r"([-+.\d]+)\)")
 
@@ -45,8 +42,6 @@ class BuiltMapRun:
 
 @pytest.fixture(scope="module")
 def built_map_run(tmp_path_factory: pytest.TempPathFactory) -> BuiltMapRun:
-    if not all(service_available(s) for s in NEEDED):
-        pytest.skip("needs the sim, drive, lidar, localization and nav services")
     tmp = tmp_path_factory.mktemp("built_map")
     out = tmp / "result.json"
     t0 = time.monotonic()

@@ -7,12 +7,13 @@ import math
 import numpy as np
 import pytest
 
+from services.common.robot import TwistLimits
 from services.nav.costmap import LETHAL, Costmap2D, Footprint, InflationLayer
-from services.nav.dwa import DwaConfig, DwaPlanner, Limits, wrap
+from services.nav.dwa import DwaConfig, DwaPlanner
 
 
-def planner(**cfg) -> DwaPlanner:  # noqa: ANN003
-    return DwaPlanner(DwaConfig(**cfg), Limits(), Footprint(0.3))
+def planner(**cfg) -> DwaPlanner:
+    return DwaPlanner(DwaConfig(**cfg), TwistLimits(), Footprint(0.3))
 
 
 def free_map(n: int = 100) -> Costmap2D:
@@ -28,13 +29,13 @@ def test_window_respects_acceleration_and_velocity_limits() -> None:
     p = planner(window_dt_s=0.1)
     s = p.samples((0.15, 0.0, 0.45))
     lim = p.limits
-    assert s[:, 0].min() >= 0.15 - lim.ax * 0.1 - 1e-12 and s[:, 0].max() <= lim.vx_max + 1e-12
-    assert s[:, 2].max() <= lim.wz_max + 1e-12 and s[:, 2].min() >= 0.45 - lim.aw * 0.1 - 1e-12
+    assert s[:, 0].min() >= 0.15 - lim.ax_max_mps2 * 0.1 - 1e-12 and s[:, 0].max() <= lim.vx_max_mps + 1e-12
+    assert s[:, 2].max() <= lim.wz_max_radps + 1e-12 and s[:, 2].min() >= 0.45 - lim.alpha_max_radps2 * 0.1 - 1e-12
     assert (s[:, 1] == 0.0).any()  # stopping sideways is always a candidate
     assert len(s) >= 20 * 5 * 10
     # a current velocity beyond the box is brought back inside
     s2 = p.samples((0.5, 0.0, 0.0))
-    assert s2[:, 0].max() <= lim.vx_max + 1e-12
+    assert s2[:, 0].max() <= lim.vx_max_mps + 1e-12
 
 
 def test_rollout_is_exact_on_se2() -> None:
@@ -96,13 +97,6 @@ def test_oscillation_critic_penalises_sign_flips() -> None:
                  previous=(0.1, -0.1, 0.2))
     assert res.twist[0] >= 0 and res.twist[1] <= 0 and res.twist[2] >= 0
     assert res.scores["oscillation"] == 0.0
-
-
-def test_wrap() -> None:
-    assert wrap(math.pi) == pytest.approx(math.pi)
-    assert wrap(-math.pi) == pytest.approx(math.pi)
-    assert wrap(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
-    assert np.allclose(wrap(np.array([0.1, 2 * math.pi + 0.1])), [0.1, 0.1])
 
 
 def test_escapes_from_the_inscribed_zone() -> None:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 from services.nav.config import NavConfig
 from services.nav.costmap import ScanObservation
 from services.nav.navigator import Navigator
@@ -82,8 +83,8 @@ class KinematicSim:
             self.collided = True
 
 
-def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True, on_step=None,  # noqa: ANN001
-          stop_when=None) -> list[str]:  # noqa: ANN001
+def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True, on_step=None,
+          stop_when=None) -> list[str]:
     """Run the control loop at 20 Hz until the goal ends (or ``stop_when()``); the states seen, in order."""
     dt = 0.05
     states: list[str] = []
@@ -114,7 +115,7 @@ def drive(nav: Navigator, sim: KinematicSim, limit_s: float, scans: bool = True,
 CORRIDOR = dict(free_rects=[[-2.0, -1.4, 6.0, 1.6], [-2.0, 1.6, 16.0, 4.9]], extent=[-2.5, -2.0, 16.5, 5.5])
 
 
-def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicSim]:  # noqa: ANN003
+def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicSim]:
     occ, x0, y0 = room_world(**CORRIDOR)
     nav = Navigator(NavConfig(**cfg), RobotSpec())
     nav.set_map(occ, RES, x0, y0)
@@ -123,7 +124,7 @@ def make(pose: tuple[float, float, float], **cfg) -> tuple[Navigator, KinematicS
 
 def pose_error(sim: KinematicSim, goal: tuple[float, float, float]) -> tuple[float, float, float]:
     e = sim.pose - np.asarray(goal)
-    return float(e[0]), float(e[1]), float((e[2] + math.pi) % (2 * math.pi) - math.pi)
+    return float(e[0]), float(e[1]), wrap_angle(float(e[2]))
 
 
 @pytest.mark.parametrize("goal", [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (1.0, -0.5, -2.5)])

@@ -34,7 +34,7 @@ def corridor_grid() -> m.OccupancyGrid:
 class FakeRobot:
     """Kinematic holonomic base on sim time (2x wall), publishing what drive, lidar and localization would."""
 
-    def __init__(self, session, keys, speed: float = 2.0) -> None:  # noqa: ANN001
+    def __init__(self, session, keys, speed: float = 2.0) -> None:
         self.session, self.keys, self.speed = session, keys, speed
         self.pose = np.zeros(3)
         self.vel = np.zeros(3)
@@ -49,7 +49,7 @@ class FakeRobot:
         self.sub = session.declare_subscriber(keys("cmd_vel"), self._on_cmd)
         self.thread = threading.Thread(target=self._run, daemon=True)
 
-    def _on_cmd(self, sample) -> None:  # noqa: ANN001
+    def _on_cmd(self, sample) -> None:
         msg = codec.decode_as(m.Twist2D, sample.payload.to_bytes())
         self.cmd = np.array([msg.vx, msg.vy, msg.wz])
         self.cmd_count += 1
@@ -92,7 +92,7 @@ class FakeRobot:
         self.sub.undeclare()
 
 
-def call(session, keys, name: str, req: m.Message):  # noqa: ANN001, ANN201
+def call(session, keys, name: str, req: m.Message):
     _, rep_type = codec.query_types(name)
     replies = list(session.get(keys(name), payload=codec.encode(req), timeout=5.0))
     ok = [r.ok for r in replies if r.ok is not None]
@@ -100,7 +100,7 @@ def call(session, keys, name: str, req: m.Message):  # noqa: ANN001, ANN201
     return codec.decode_as(rep_type, ok[0].payload.to_bytes())
 
 
-def test_goal_cancel_and_status_through_the_service(stack_factory) -> None:  # noqa: ANN001
+def test_goal_cancel_and_status_through_the_service(stack_factory) -> None:
     stack = stack_factory(services=["nav"]).start(wait_ready=False)  # nav is ready once it has a map and a pose
     session = stack.session()
     keys = stack.keys

@@ -19,7 +19,7 @@ from services.nav.astar import planning_cost
 from services.nav.config import NavConfig
 from services.nav.costmap import LETHAL, ScanObservation
 from services.nav.navigator import Navigator, PlanRequest
-from services.nav.node import PoseTracker
+from services.nav.pose_tracker import PoseTracker
 from services.sim.world import World
 
 REPO = Path(__file__).resolve().parents[1]
@@ -224,7 +224,7 @@ def test_escapes_climb_a_ladder_and_waiting_lets_a_blocker_pass() -> None:
     goal = nav.goal
     removed = []
 
-    def take_away(s) -> None:  # noqa: ANN001
+    def take_away(s) -> None:
         if not removed and goal.recovery == "wait":
             occ, x0, y0 = s.occ, s.x0, s.y0
             h, w = occ.shape

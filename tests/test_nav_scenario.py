@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from proto import messages as m
-from services.cli.scenario import Goal, Leg, ScenarioError, draw_plots, format_table, load_scenario, summarize, wrap
+from services.cli.scenario import Goal, Leg, ScenarioError, draw_plots, format_table, load_scenario, summarize
 from services.cli.scenario_mapping import (
     arrived,
     costmap_follows,
@@ -160,11 +160,6 @@ def test_summary_table_means_over_reached_goals() -> None:
     assert rows[1]["reached"] == 1 and rows[1]["mean_error"] == pytest.approx([0.03, 0.0, 0.01])
     table = format_table(rows)
     assert "(3.00, 0.10, 1.57)" in table and "2/2" in table and "1/2" in table and "+0.015" in table
-
-
-def test_wrap_is_minus_pi_exclusive() -> None:
-    assert wrap(-math.pi) == pytest.approx(math.pi)
-    assert wrap(2 * math.pi - 0.1) == pytest.approx(-0.1)
 
 
 def test_plots_are_written(tmp_path: Path) -> None:

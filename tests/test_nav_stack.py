@@ -10,12 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.up import service_available
-
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NEEDED = ["sim", "drive", "lidar", "localization", "nav"]
 
 SCENARIO = """
 world = "corridor"
@@ -35,8 +32,6 @@ appear_after_s = 2.0
 """
 
 
-@pytest.mark.skipif(not all(service_available(s) for s in NEEDED),
-                    reason="needs the sim, drive, lidar and localization services")
 def test_scenario_reaches_goals_and_replans_around_a_box(tmp_path: Path) -> None:
     scenario = tmp_path / "short.toml"
     scenario.write_text(SCENARIO)

@@ -12,12 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.up import service_available
-
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NEEDED = ["sim", "drive", "lidar", "localization", "nav"]
-needs_stack = pytest.mark.skipif(not all(service_available(s) for s in NEEDED),
-                                 reason="needs the sim, drive, lidar and localization services")
 
 
 def run_suite(tmp_path: Path, *args: str, timeout_s: float) -> tuple[subprocess.CompletedProcess, dict]:
@@ -31,7 +26,6 @@ def run_suite(tmp_path: Path, *args: str, timeout_s: float) -> tuple[subprocess.
 
 @pytest.mark.integration
 @pytest.mark.slow
-@needs_stack
 def test_suite_slice_reaches_a_generated_goal_judged_by_ground_truth(tmp_path: Path) -> None:
     done, result = run_suite(tmp_path, "--only", "cluttered_hall", "--seeds", "4", "--goals", "1", "--max-leg", "5",
                                timeout_s=600)
@@ -48,7 +42,6 @@ def test_suite_slice_reaches_a_generated_goal_judged_by_ground_truth(tmp_path: P
 
 
 @pytest.mark.long
-@needs_stack
 def test_whole_suite_meets_the_robustness_acceptance(shared_dir: Path, tmp_path: Path) -> None:
     maps = shared_dir / "data" / "maps"
     done, result = run_suite(tmp_path, "--maps-dir", str(maps), timeout_s=float(os.environ.get("ZAGV_SUITE_S", 14400)))

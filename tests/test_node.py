@@ -10,17 +10,9 @@ from proto import Keys, encode
 from proto.messages import Empty, OccupancyGrid, Pose2D, Reply, Twist2D
 from services.common.node import Node
 from services.common.query import NoAnswer, QueryError
-from services.common.session import open_session, router_settings
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from tests.support.waiting import wait_for
-
-
-@pytest.fixture
-def router(free_port):
-    endpoint = f"tcp/127.0.0.1:{free_port}"
-    session = open_session(router_settings([endpoint]))
-    yield endpoint
-    session.close()
 
 
 @pytest.fixture

@@ -28,15 +28,15 @@ def corridor(tmp_path_factory: pytest.TempPathFactory):
     return record_corridor(tmp_path_factory.mktemp("corridor"), goals=1, speed=4.0, estop_at_s=65.0)
 
 
-def _stamp(header) -> float:  # noqa: ANN001
+def _stamp(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
 
 
-def _yaw(q) -> float:  # noqa: ANN001
+def _yaw(q) -> float:
     return quat_to_yaw(q.x, q.y, q.z, q.w)
 
 
-def _by_stamp(t: type, payloads: list[bytes]) -> dict[int, list]:  # noqa: ANN001
+def _by_stamp(t: type, payloads: list[bytes]) -> dict[int, list]:
     out: dict[int, list] = {}
     for p in payloads:
         msg = codec.decode_as(t, p)
@@ -127,7 +127,7 @@ def check_bag_matches_published(bag: Path, published: dict[str, list[bytes]]) ->
     return counts
 
 
-def test_recording_decodes_with_rosbags_and_mcap_and_equals_what_was_published(corridor) -> None:  # noqa: ANN001
+def test_recording_decodes_with_rosbags_and_mcap_and_equals_what_was_published(corridor) -> None:
     assert corridor.goals_reached == corridor.goals == 1
     counts = check_bag_matches_published(corridor.bag, corridor.published)
     mb = bag_mb(corridor.bag)
@@ -136,7 +136,7 @@ def test_recording_decodes_with_rosbags_and_mcap_and_equals_what_was_published(c
     assert counts["/scan"] > 200 and counts["/odom"] > 300 and counts["/tf"] > 500 and counts["/tf_static"] == 1
 
 
-def test_replay_into_localization_alone_reproduces_the_trajectory(corridor, tmp_path: Path) -> None:  # noqa: ANN001
+def test_replay_into_localization_alone_reproduces_the_trajectory(corridor, tmp_path: Path) -> None:
     """The map trajectory (map -> odom composed with odom, at every odom) of localization fed the bag's scans and
     odometry equals the recorded one within 0.01 m RMS over the bag."""
     bag_span = _bag_span_s(corridor.bag)
@@ -155,7 +155,7 @@ def _bag_span_s(bag: Path) -> tuple[float, float]:
         return reader.start_time / 1e9, reader.end_time / 1e9
 
 
-def test_blackbox_bag_covers_the_minute_before_the_estop(corridor) -> None:  # noqa: ANN001
+def test_blackbox_bag_covers_the_minute_before_the_estop(corridor) -> None:
     """The e-stop's black box bag holds the 60 s before it, and each of its scans, odometry and transforms equals a
     message that was published (the harness listened from before the first service started)."""
     bags = [d for d in corridor.blackbox_dir.iterdir() if "estop" in d.name]

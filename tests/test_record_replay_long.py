@@ -28,6 +28,7 @@ from services.cli.bench_record import (
 )
 from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.node import query
+from services.common.se2 import compose
 from tests.support.waiting import wait_for_sync
 from tests.test_record_replay import check_bag_matches_published
 
@@ -49,13 +50,7 @@ def test_full_corridor_run_records_and_replays(tmp_path: Path) -> None:
     assert matched > 1000 and rms_m < 0.01
 
 
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1],
-                            np.arctan2(np.sin(a[:, 2] + b[:, 2]), np.cos(a[:, 2] + b[:, 2]))])
-
-
-def _stats(session, keys, service: str) -> dict:  # noqa: ANN001
+def _stats(session, keys, service: str) -> dict:  # zenoh.Session, Keys
     for reply in session.get(keys(f"@stats/{service}"), timeout=5.0):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
@@ -135,7 +130,7 @@ def test_fr079_ros1_bag_replayed_into_live_slam(tmp_path: Path, shared_dir: Path
     tf_poses = np.array([[t.x, t.y, t.theta] for t in map_odom])
     scan_stamps = np.array([s.stamp_s for s in log.scans])
     idx = np.clip(np.searchsorted(tf_stamps, scan_stamps + 1e-6) - 1, 0, len(tf_stamps) - 1)
-    robot = _compose(tf_poses[idx], np.array([s.odom_pose for s in log.scans]))
+    robot = compose(tf_poses[idx], np.array([s.odom_pose for s in log.scans]))
     with relations_file.open() as f:
         online = relative_pose_error(scan_stamps, scan_poses(robot, log.sensor_pose), parse_relations(f))
     print(f"\nfr079 live SLAM via replay (x{FR079_RATE:g}, {replay_s:.0f} s): map grew to "

@@ -37,7 +37,7 @@ def test_peer_defaults_listen_on_loopback_only_and_gossip_without_multicast() ->
     assert json.loads(router.get_json("scouting/gossip"))["autoconnect"]["router"] == []
 
 
-def test_shared_memory_falls_back_where_dev_shm_is_not_writable(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+def test_shared_memory_falls_back_where_dev_shm_is_not_writable(tmp_path: Path, monkeypatch) -> None:
     assert not shm_usable(str(tmp_path / "missing"))
     monkeypatch.setattr("services.common.session.SHM_DIR", str(tmp_path / "missing"))
     conf = zenoh_config(ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"]))

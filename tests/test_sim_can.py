@@ -59,7 +59,7 @@ def test_master_drives_both_modules_and_the_watchdog_stops_them(stack_factory) -
     truth: list[GroundTruth] = []
     lock = threading.Lock()
 
-    def on_truth(sample) -> None:  # noqa: ANN001
+    def on_truth(sample) -> None:
         msg = codec.decode_as(GroundTruth, sample.payload.to_bytes())
         with lock:
             truth.append(msg)

@@ -15,7 +15,7 @@ from tests.support.waiting import wait_for
 pytestmark = pytest.mark.integration
 
 
-async def test_sim_service_clock_truth_queries_and_imu(stack_factory, tmp_path) -> None:  # noqa: ANN001
+async def test_sim_service_clock_truth_queries_and_imu(stack_factory, tmp_path) -> None:
     imu_link = tmp_path / "imu"
     stack = stack_factory(services=["sim"], speed=4.0, world="empty_room",
                           extra_args=["--set", f'sim.imu_link="{imu_link}"']).start()

@@ -24,7 +24,7 @@ from services.sim.roboteq import (
 N = 3
 
 
-def make(**kw) -> RoboteqNode:  # noqa: ANN003
+def make(**kw) -> RoboteqNode:
     node = RoboteqNode(RoboteqSettings(node_id=N, **kw), TractionMotor(cpr=4096), SteerMotor(cpr=4096))
     return node
 
@@ -238,14 +238,14 @@ class Bridge:
         self.bus.shutdown()
 
 
-def test_python_canopen_master_reads_writes_and_maps_pdos(request) -> None:  # noqa: ANN001
+def test_python_canopen_master_reads_writes_and_maps_pdos(request) -> None:
     from canopen.objectdictionary import ODArray, ODRecord, ODVariable
     from canopen.objectdictionary import datatypes as dt
 
     channel = f"roboteq_{request.node.name}"
     od = canopen.ObjectDictionary()
 
-    def var(name: str, index: int, sub: int, typ: int, parent=None):  # noqa: ANN001, ANN202
+    def var(name: str, index: int, sub: int, typ: int, parent=None):
         v = ODVariable(name, index, sub)
         v.data_type = typ
         v.access_type = "rw"

@@ -106,7 +106,7 @@ def test_dynamic_obstacles_by_request_and_schedule() -> None:
     assert w.apply_schedule(8.0) and w.active_obstacle_ids() == []
 
 
-def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) -> None:  # noqa: ANN001
+def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) -> None:
     yml, pgm = corridor.write_map(tmp_path / "world")
     text = yml.read_text()
     assert "mode: trinary" in text and "origin: [-2.5, -2, 0.0]" in text and "resolution: 0.05" in text
@@ -141,7 +141,7 @@ def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) ->
         World.load_map_yaml(tmp_path / "missing.yaml")
 
 
-def test_render_map_cli(tmp_path) -> None:  # noqa: ANN001
+def test_render_map_cli(tmp_path) -> None:
     out = tmp_path / "run" / "world"
     subprocess.run([sys.executable, "-m", "services.sim.render_map", "--world", "loop", "--out", str(out)],
                    check=True, capture_output=True)
@@ -150,7 +150,7 @@ def test_render_map_cli(tmp_path) -> None:  # noqa: ANN001
 
 
 
-def test_render_map_names_a_bad_world(tmp_path, capsys) -> None:  # noqa: ANN001
+def test_render_map_names_a_bad_world(tmp_path, capsys) -> None:
     from services.sim.render_map import main
 
     assert main(["--world", "nope", "--out", str(tmp_path / "w")]) == 2

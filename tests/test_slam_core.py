@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.common.se2 import between, compose, inverse, transform_points, wrap_angle
 from services.localization.slam.evaluation import Relations, parse_relations, relative_pose_error
 from services.localization.slam.likelihood import MultiResolutionGrid
 from services.localization.slam.logs import parse_carmen
@@ -12,7 +13,6 @@ from services.localization.slam.map_files import read_trajectory, write_ros_map,
 from services.localization.slam.matcher import correlative_search, refine, translation_sharpness
 from services.localization.slam.occupancy import PGM_FREE, PGM_OCCUPIED, PGM_UNKNOWN, OccupancyGrid
 from services.localization.slam.pose_graph import PoseGraph
-from services.localization.slam.se2 import between, compose, inverse, transform_points, wrap_angle
 
 
 def room_points(spacing_m: float = 0.02) -> np.ndarray:
@@ -38,7 +38,7 @@ def test_se2_compose_inverse_between():
     b = np.array([-0.5, 0.3, -2.9])
     np.testing.assert_allclose(compose(a, inverse(a)), 0, atol=1e-12)
     np.testing.assert_allclose(compose(a, between(a, b)), b, atol=1e-12)
-    assert abs(wrap_angle(3 * np.pi) + np.pi) < 1e-12
+    assert abs(wrap_angle(3 * np.pi) - np.pi) < 1e-12
 
 
 def test_refine_recovers_known_offset():

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from services.common.se2 import between, compose
 from services.localization.slam.evaluation import aligned_trajectory_error, false_closures, scan_poses
 from services.localization.slam.logs import parse_carmen, read_log, with_mount
 from services.localization.slam.mapper import GraphSlam, LoopClosure
 from services.localization.slam.odometry_noise import OdometryNoise, corrupt_poses
 from services.localization.slam.offline import run_slam
-from services.localization.slam.se2 import between, compose
 
 
 @pytest.fixture

@@ -57,7 +57,7 @@ class Truth:
         self._lock = threading.Lock()
         session = stack.session()
 
-        def on_sample(sample) -> None:  # noqa: ANN001
+        def on_sample(sample) -> None:
             msg = codec.decode_as(m.GroundTruth, sample.payload.to_bytes(), "sim/ground_truth")
             with self._lock:
                 self.trace.append((time.monotonic(), msg.stamp, msg))
@@ -111,7 +111,7 @@ class Rig:
         self.master.wait(lambda e: e["event"] in ("instantSent", "instantFailed"), timeout_s=10, after=mark)
         return mark
 
-    def state_where(self, pred, *, timeout_s: float, after: int = 0, what: str = "") -> dict:  # noqa: ANN001
+    def state_where(self, pred, *, timeout_s: float, after: int = 0, what: str = "") -> dict:
         return self.master.wait(lambda e: e["event"] == "state" and pred(e), timeout_s=timeout_s, after=after,
                                 what=what or "state")
 

@@ -1,14 +1,13 @@
 """``zagv bench [--only PREFIX] [--json FILE]``: run the benchmark groups and print a table.
 
-Groups come from ``services/<name>/bench.py`` and ``services/cli/bench_*.py`` modules (see services.common.bench).
+Groups come from the ``BENCHES`` lists of ``services/<name>/bench.py`` and ``services/cli/bench_*.py`` (see
+services.common.bench), imported when the command runs.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
-import pkgutil
 import sys
 import traceback
 from collections.abc import Callable
@@ -16,20 +15,20 @@ from pathlib import Path
 
 from services.common.bench import BenchRow
 
-SERVICES_DIR = Path(__file__).resolve().parents[1]
-
 
 def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
     """Every (group, function) pair, cheapest first as each module lists them."""
-    modules = [f"services.cli.{m.name}" for m in pkgutil.iter_modules([str(SERVICES_DIR / "cli")])
-               if m.name.startswith("bench_")]
-    modules += [f"services.{d.name}.bench" for d in sorted(SERVICES_DIR.iterdir())
-                if (d / "bench.py").is_file()]
-    groups = []
-    for name in modules:
-        module = importlib.import_module(name)
-        groups.extend(getattr(module, "BENCHES", []))
-    return groups
+    from services.cli import bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh
+    from services.drive import bench as drive_bench
+    from services.hmi_api import bench as hmi_api_bench
+    from services.lidar import bench as lidar_bench
+    from services.localization import bench as localization_bench
+    from services.nav import bench as nav_bench
+    from services.sim import bench as sim_bench
+
+    modules = [bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh, drive_bench, hmi_api_bench,
+               lidar_bench, localization_bench, nav_bench, sim_bench]
+    return [group for module in modules for group in module.BENCHES]
 
 
 def selected(group: str, only: str | None) -> bool:

@@ -14,7 +14,6 @@ process per second of robot time, i.e. cores at 1x), ``replay.speed_factor`` (ba
 from __future__ import annotations
 
 import asyncio
-import math
 import os
 import resource
 import subprocess
@@ -32,6 +31,7 @@ from proto import codec
 from proto import messages as m
 from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.bench import BenchRow
+from services.common.se2 import compose
 
 SCENARIO = REPO_ROOT / "scenarios" / "corridor_table3.toml"
 RECORDED = ("scan", "odom", "tf/map_odom", "pose")
@@ -88,7 +88,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
     with stack.start(ready_timeout_s=300.0, wait_ready=False):
         session = stack.session()
 
-        def keep(name: str):  # noqa: ANN202
+        def keep(name: str):
             def on_sample(sample: zenoh.Sample) -> None:
                 with lock:
                     published[name].append(sample.payload.to_bytes())
@@ -142,7 +142,7 @@ def bag_span_s(bag: Path) -> float:
         return (src.end_ns - src.start_ns) / 1e9
 
 
-async def _drive(sc, stack: Stack) -> list[dict]:  # noqa: ANN001 - Scenario
+async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
     initial pose of its configuration, so that a replay into a fresh localization starts from the same prior."""
     from services.cli.scenario import Client, run_goal, wait_until
@@ -214,9 +214,8 @@ def map_trajectory(map_odom: list[m.Transform2D], odom: list[m.Odometry]) -> tup
         if i < 0:
             continue
         a = tf[i]
-        c, s = math.cos(a.theta), math.sin(a.theta)
         out_t.append(o.stamp)
-        out_p.append((a.x + c * o.pose.x - s * o.pose.y, a.y + s * o.pose.x + c * o.pose.y, a.theta + o.pose.theta))
+        out_p.append(compose((a.x, a.y, a.theta), (o.pose.x, o.pose.y, o.pose.theta)))
     return np.array(out_t), np.array(out_p).reshape(-1, 3)
 
 
@@ -235,7 +234,7 @@ def trajectory_rms_m(recorded: list[m.Transform2D], replayed: list[m.Transform2D
 
 def replay_speed_factor(bag: Path) -> float:
     """Bag seconds per wall second of ``zagv replay --rate 0`` (publishing into a router with no subscriber)."""
-    from services.cli.stack_process import free_port
+    from services.common.ports import free_port
 
     port = free_port()
     router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],

@@ -34,6 +34,7 @@ from proto import codec
 from proto.messages import LaserScan
 from services.common.bench import BenchRow
 from services.common.lifetime import die_with_parent
+from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 
@@ -53,14 +54,6 @@ def topology(name: str, endpoint: str) -> tuple[list[str], ZenohSettings]:
         settings = msgspec.convert({**table, "connect": [endpoint]}, ZenohSettings)
         return ["--config", str(DEPLOY / "zenoh" / "router-loopback.json5")], settings
     raise ValueError(f"unknown topology {name!r} (up, peer, systemd)")
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def echo_main(settings_json: str) -> None:
@@ -100,7 +93,7 @@ class _Peers:
         self.name = name
 
     def __enter__(self) -> _Peers:
-        port = _free_port()
+        port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{port}"
         router_args, settings = topology(self.name, self.endpoint)
         env = {**os.environ, "ZAGV_PARENT_PID": str(os.getpid())}

@@ -19,7 +19,7 @@ def add_client_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="robot id (default %(default)s)")
 
 
-def client_session(args: argparse.Namespace):  # noqa: ANN201 - zenoh.Session
+def client_session(args: argparse.Namespace):  # zenoh.Session
     return open_session(ZenohSettings(mode="client", connect=args.connect or [DEFAULT_ROUTER]))
 
 

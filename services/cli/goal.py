@@ -42,7 +42,7 @@ async def follow(args: argparse.Namespace) -> int:
     loop = asyncio.get_running_loop()
     statuses: asyncio.Queue[m.NavStatus] = asyncio.Queue()
 
-    def on_status(sample) -> None:  # noqa: ANN001
+    def on_status(sample) -> None:
         with contextlib.suppress(codec.ProtoDecodeError):
             msg = codec.decode_as(m.NavStatus, sample.payload.to_bytes(), str(sample.key_expr))
             loop.call_soon_threadsafe(statuses.put_nowait, msg)

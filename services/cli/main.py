@@ -6,25 +6,34 @@ Each module in ``COMMANDS`` exposes ``register(subparsers)``, which adds its par
 from __future__ import annotations
 
 import argparse
-import importlib
 import signal
 import sys
 import threading
+from types import ModuleType
 
-COMMANDS = ["up", "router", "status", "topic", "bench", "map", "goal", "scenario", "install_units", "record",
-            "replay", "blackbox"]
+from services.cli import (
+    bench,
+    blackbox,
+    goal,
+    install_units,
+    map,
+    record,
+    replay,
+    router,
+    scenario,
+    status,
+    topic,
+    up,
+)
+
+COMMANDS: list[ModuleType] = [up, router, status, topic, bench, map, goal, scenario, install_units, record, replay,
+                              blackbox]
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="zagv", description="Zenoh-native control stack for a dual-swerve AGV")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"services.cli.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name == f"services.cli.{name}":
-                continue
-            raise
+    for module in COMMANDS:
         module.register(sub)
     return parser
 

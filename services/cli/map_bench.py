@@ -112,7 +112,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     if reference is not None and len(reference) == len(laser):
         kf_scan = slam.keyframe_scan_indices()
         mount = np.broadcast_to(log.sensor_pose, (len(reference), 3))
-        from services.localization.slam.se2 import compose, inverse
+        from services.common.se2 import compose, inverse
 
         robot_reference = compose(reference, inverse(mount))
         n_false = int(false_closures(kf_scan[[c.from_ for c in accepted]], kf_scan[[c.to for c in accepted]],
@@ -162,7 +162,7 @@ def run_bench(args: argparse.Namespace) -> int:
     for path in logs:
         clean_laser = None
         for setting in settings:
-            reference = clean_laser if setting == "degraded" else None
+            reference: np.ndarray | None = clean_laser if setting == "degraded" else None
             try:
                 row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference)
             except (OSError, ValueError) as exc:

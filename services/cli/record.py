@@ -80,7 +80,7 @@ class LogClock:
             return None
         if not self.sim_base:
             return wall_ns
-        return sim_ns if sim_ns is not None else int(round(self.first_sim_s * 1e9))
+        return sim_ns if sim_ns is not None else int(round((self.first_sim_s or 0.0) * 1e9))
 
 
 def selected_names(keys: list[str]) -> list[str] | None:
@@ -151,7 +151,7 @@ def run_record(args: argparse.Namespace) -> int:
             subs += [session.declare_subscriber(keys(n), on_sample) for n in dict.fromkeys([*names, "clock"])]
         clock.subscribed()
         if names is None or "map" in names:
-            session.get(keys("map"), lambda r: r.ok is not None and on_sample(r.ok), timeout=2.0)
+            session.get(keys("map"), lambda r: on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
         next_line = time.monotonic() + 1.0
         while True:
             with contextlib.suppress(queue.Empty):

@@ -117,7 +117,7 @@ def run_replay(args: argparse.Namespace) -> int:
     session = client_session(args)
     publishers: dict[str, object] = {}
 
-    def publisher(name: str):  # noqa: ANN202 - zenoh.Publisher
+    def publisher(name: str):  # zenoh.Publisher
         if name not in publishers:
             publishers[name] = session.declare_publisher(keys(name))
         return publishers[name]
@@ -150,7 +150,7 @@ def run_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher) -> int:  # noqa: ANN001
+def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher) -> int:
     """One pass over [start_ns, end_ns]; returns the messages published."""
     clock_pub = None if args.no_clock else publisher("clock")
     rate = args.rate

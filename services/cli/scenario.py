@@ -47,12 +47,9 @@ import asyncio
 import contextlib
 import json
 import math
-import re
 import sys
 import tempfile
 import time
-import tomllib
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -61,153 +58,15 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from proto.keys import Keys
+from services.cli.scenario_client import Client, Leg, localization_errors_m, wait_until
+from services.cli.scenario_model import Goal, Scenario, ScenarioError, load_scenario
 from services.common.query import QueryError, query
+from services.common.se2 import wrap_angle
 
 TERMINAL = ("succeeded", "failed", "canceled")
 
 
-def wrap(a: float) -> float:
-    """Angle wrapped to (-pi, pi]."""
-    return -((-a + math.pi) % (2 * math.pi) - math.pi)
-
-
-# --------------------------------------------------------------------------- scenario file
-
-
-@dataclass
-class Goal:
-    id: str
-    pose: tuple[float, float, float]
-
-
-@dataclass
-class DynamicObstacle:
-    rect: tuple[float, float, float, float]
-    during_goal: int
-    appear_after_s: float
-
-
-@dataclass
-class Mapping:
-    """The ``[mapping]`` table: the jog route, the saved map's name and the jog speed."""
-
-    route: list[tuple[float, float, float]]
-    save_as: str
-    jog_speed_mps: float
-
-
-@dataclass
-class Scenario:
-    goals: list[Goal]
-    world: str | None = None
-    map_yaml: str | None = None
-    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    repeats: int = 1
-    speed: float = 1.0
-    dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
-    name: str = "scenario"
-    mapping: Mapping | None = None
-
-
-class ScenarioError(ValueError):
-    """A scenario file that cannot be run; the message names the key."""
-
-
-def _pose(v: Any, what: str) -> tuple[float, float, float]:
-    if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, int | float) for x in v)):
-        raise ScenarioError(f"{what} must be [x, y, theta] numbers, got {v!r}")
-    if not all(math.isfinite(x) for x in v):
-        raise ScenarioError(f"{what} must be finite, got {v!r}")
-    return (float(v[0]), float(v[1]), float(v[2]))
-
-
-def _mapping(raw: Any, p: Path, name: str) -> Mapping:
-    from services.common.robot import RobotSpec
-
-    if not isinstance(raw, dict):
-        raise ScenarioError(f"{p}: mapping must be a table ([mapping]), got {raw!r}")
-    extra = sorted(set(raw) - {"route", "save_as", "jog_speed_mps"})
-    if extra:
-        raise ScenarioError(f"{p}: mapping: unknown key(s) {', '.join(extra)}; known: jog_speed_mps, route, save_as")
-    route_raw = raw.get("route")
-    if not isinstance(route_raw, list) or not route_raw:
-        raise ScenarioError(f"{p}: mapping.route must be a non-empty list of [x, y, theta] waypoints, got "
-                            f"{route_raw!r}")
-    route = [_pose(w, f"mapping.route[{k}]") for k, w in enumerate(route_raw, 1)]
-    default_name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:57].lstrip(".-") or "scenario"
-    save_as = raw.get("save_as", f"{default_name}_built")
-    if not isinstance(save_as, str) or not m.MAP_NAME.match(save_as):
-        raise ScenarioError(f"{p}: mapping.save_as {save_as!r} must be a map name of 1-64 letters, digits, '_', '-' "
-                            "or '.' (no path, not starting with '.' or '-')")
-    spec = RobotSpec()
-    limit = min(spec.vx_max_mps, spec.vy_max_mps)
-    speed = raw.get("jog_speed_mps", spec.vx_max_mps)
-    if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed <= limit:
-        raise ScenarioError(f"{p}: mapping.jog_speed_mps must be a number in (0, {limit:g}] (the robot's vx_max_mps "
-                            f"and vy_max_mps), got {speed!r}")
-    return Mapping(route, save_as, float(speed))
-
-
-def load_scenario(path: str | Path) -> Scenario:
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except OSError as exc:
-        raise ScenarioError(f"{p}: cannot read: {exc.strerror or exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
-    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description",
-             "mapping"}
-    unknown = sorted(set(data) - known)
-    if unknown:
-        raise ScenarioError(f"{p}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
-    if ("world" in data) == ("map" in data):
-        raise ScenarioError(f"{p}: give exactly one of `world` (built-in name) or `map` (ROS map YAML)")
-    map_yaml = None
-    if "map" in data:
-        mp = Path(data["map"])
-        candidates = [mp] if mp.is_absolute() else [(p.parent / mp).resolve(), mp.resolve()]
-        found = [c for c in candidates if c.is_file()]
-        if not found:
-            raise ScenarioError(f"{p}: map {data['map']} not found (relative to the scenario file or the current"
-                                f" folder: {', '.join(map(str, candidates))})")
-        map_yaml = str(found[0])
-    goals_raw = data.get("goals", [])
-    if not goals_raw:
-        raise ScenarioError(f"{p}: no [[goals]]")
-    goals = []
-    for k, g in enumerate(goals_raw, 1):
-        if "pose" not in g:
-            raise ScenarioError(f"{p}: goals[{k}] has no pose")
-        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
-        if extra:
-            raise ScenarioError(f"{p}: goals[{k}]: unknown key(s) {', '.join(extra)}")
-        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"goals[{k}].pose")))
-    obstacles = []
-    for k, o in enumerate(data.get("dynamic_obstacles", []), 1):
-        extra = sorted(set(o) - {"rect", "during_goal", "appear_after_s"})
-        if extra:
-            raise ScenarioError(f"{p}: dynamic_obstacles[{k}]: unknown key(s) {', '.join(extra)}")
-        rect = o.get("rect")
-        if not (isinstance(rect, list) and len(rect) == 4 and rect[0] < rect[2] and rect[1] < rect[3]):
-            raise ScenarioError(f"{p}: dynamic_obstacles[{k}].rect must be [xmin, ymin, xmax, ymax], got {rect!r}")
-        during = int(o.get("during_goal", 1))
-        if not 1 <= during <= len(goals):
-            raise ScenarioError(f"{p}: dynamic_obstacles[{k}].during_goal {during} is not a goal index 1..{len(goals)}")
-        obstacles.append(DynamicObstacle(tuple(float(v) for v in rect), during, float(o.get("appear_after_s", 0.0))))
-    repeats = int(data.get("repeats", 1))
-    speed = float(data.get("speed", 1.0))
-    if repeats < 1 or not speed > 0:
-        raise ScenarioError(f"{p}: repeats must be >= 1 and speed > 0")
-    name = data.get("name", p.stem)
-    if not isinstance(name, str) or not name:
-        raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
-    mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
-    return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
-                    speed, obstacles, name, mapping)
-
-
-# --------------------------------------------------------------------------- results
+# --------------------------------------------------------------------------- report
 
 
 def summarize(runs: list[dict]) -> list[dict]:
@@ -269,157 +128,6 @@ def format_table(summary: list[dict]) -> str:
 # --------------------------------------------------------------------------- running
 
 
-@dataclass
-class Leg:
-    run: int
-    goal: Goal
-    start_t: float
-    plan: np.ndarray | None = None
-    final_plan: np.ndarray | None = None
-    obstacles: list[tuple[float, float, float, float]] = field(default_factory=list)
-    trace: list[tuple[float, float, float, float, float, float, float]] = field(default_factory=list)
-    #: the pose nav drives on (map->odom composed with odometry) at every odometry stamp of the leg: (t, x, y)
-    estimates: list[tuple[float, float, float]] = field(default_factory=list)
-
-
-def localization_errors_m(leg: Leg) -> np.ndarray:
-    """|estimate - ground truth| (m) at each estimate's stamp, the truth interpolated between its samples there
-    (matched in sim time, so the lag of the messages under load is not counted as error)."""
-    tr = np.asarray(leg.trace, dtype=float).reshape(-1, 7)
-    est = np.asarray(leg.estimates, dtype=float).reshape(-1, 3)
-    if len(tr) < 2 or not len(est):
-        return np.zeros(0)
-    order = np.argsort(tr[:, 0], kind="stable")
-    t, x, y = tr[order, 0], tr[order, 1], tr[order, 2]
-    inside = (est[:, 0] >= t[0]) & (est[:, 0] <= t[-1])
-    e = est[inside]
-    return np.hypot(e[:, 1] - np.interp(e[:, 0], t, x), e[:, 2] - np.interp(e[:, 0], t, y))
-
-
-def _passes_around(poses: np.ndarray, rects: list[tuple[float, float, float, float]], near_m: float = 1.5) -> bool:
-    """Whether a path comes within ``near_m`` of an obstacle but keeps 0.6 m off it (a detour, not a stop)."""
-    for x0, y0, x1, y1 in rects:
-        dx = np.maximum(np.maximum(x0 - poses[:, 0], poses[:, 0] - x1), 0.0)
-        dy = np.maximum(np.maximum(y0 - poses[:, 1], poses[:, 1] - y1), 0.0)
-        d = np.hypot(dx, dy)
-        if d.min() < near_m and d.min() > 0.6:
-            return True
-    return False
-
-
-class Client:
-    """What the runner watches: sim clock, ground truth, nav status and path."""
-
-    def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:  # noqa: ANN001
-        self.session, self.keys, self.loop = session, keys, loop
-        self.sim_time = 0.0
-        self.truth: m.GroundTruth | None = None
-        self.status: m.NavStatus | None = None
-        self.status_changed = asyncio.Event()
-        self.paths: list[tuple[float, np.ndarray]] = []
-        self.odom_count = 0
-        self.pose: m.PoseWithCovariance | None = None
-        self.pose_count = 0
-        self.odom: tuple[float, float, float] | None = None
-        self.map_odom: tuple[float, float, float] | None = None
-        self.collisions = 0
-        self.leg: Leg | None = None
-        self.jogging = False  # the mapping phase drives the robot (collisions count then too)
-        self.truth_changed = asyncio.Event()
-        self.aborted = False
-        self.detours: list[bool] = []  # per leg with a dynamic obstacle: whether nav planned around it
-        self.localization_errors: list[tuple[float, float, float]] = []
-        self._subs = []
-        self._sub("clock", m.Clock, self._on_clock)
-        self._sub("sim/ground_truth", m.GroundTruth, self._on_truth)
-        self._sub("nav/status", m.NavStatus, self._on_status)
-        self._sub("nav/path", m.Path, self._on_path)
-        self._sub("odom", m.Odometry, self._on_odom)
-        self._sub("pose", m.PoseWithCovariance, self._on_pose)
-        self._sub("tf/map_odom", m.Transform2D, self._on_tf)
-
-    def _on_odom(self, msg: m.Odometry) -> None:
-        self.odom_count += 1
-        self.odom = (msg.pose.x, msg.pose.y, msg.pose.theta)
-        est = self.estimate()
-        if self.leg is not None and est is not None:
-            self.leg.estimates.append((msg.stamp, est[0], est[1]))
-
-    def _on_tf(self, msg: m.Transform2D) -> None:
-        self.map_odom = (msg.x, msg.y, msg.theta)
-
-    def estimate(self) -> tuple[float, float, float] | None:
-        """The robot's pose as nav sees it: map->odom composed with the odometry pose."""
-        if self.odom is None or self.map_odom is None:
-            return None
-        a, b = self.map_odom, self.odom
-        c, s = math.cos(a[2]), math.sin(a[2])
-        return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap(a[2] + b[2]))
-
-    def _on_pose(self, msg: m.PoseWithCovariance) -> None:
-        self.pose = msg
-        self.pose_count += 1
-
-    def _sub(self, name: str, t: type, cb) -> None:  # noqa: ANN001
-        def on_sample(sample) -> None:  # noqa: ANN001
-            try:
-                msg = codec.decode_as(t, sample.payload.to_bytes(), str(sample.key_expr))
-            except codec.ProtoDecodeError:
-                return
-            with contextlib.suppress(RuntimeError):  # the loop already closed at the end of the run
-                self.loop.call_soon_threadsafe(cb, msg)
-
-        self._subs.append(self.session.declare_subscriber(self.keys(name), on_sample))
-
-    def _on_clock(self, msg: m.Clock) -> None:
-        self.sim_time = max(self.sim_time, msg.stamp)
-
-    def _on_truth(self, msg: m.GroundTruth) -> None:
-        if msg.collided and not (self.truth and self.truth.collided) and (self.leg is not None or self.jogging):
-            self.collisions += 1  # while driving a leg (the sim's own start pose may lie in a wall of a map)
-        self.truth = msg
-        self.sim_time = max(self.sim_time, msg.stamp)
-        if self.leg is not None:
-            p, v = msg.pose, msg.twist
-            self.leg.trace.append((msg.stamp, p.x, p.y, p.theta, v.vx, v.vy, v.wz))
-        self.truth_changed.set()
-
-    def _on_status(self, msg: m.NavStatus) -> None:
-        self.status = msg
-        self.status_changed.set()
-
-    def _on_path(self, msg: m.Path) -> None:
-        poses = codec.array(msg, "poses").copy()
-        leg = self.leg
-        if leg is not None and len(poses):
-            if leg.plan is None:
-                leg.plan = poses
-            elif leg.obstacles and leg.final_plan is None and _passes_around(poses, leg.obstacles):
-                leg.final_plan = poses
-
-    async def query(self, name: str, req: m.Message | None = None, timeout_s: float = 5.0) -> Any:
-        return await query(self.session, self.keys, name, req, timeout_s=timeout_s)
-
-    async def sim_sleep(self, dt: float) -> None:
-        end = self.sim_time + dt
-        while self.sim_time < end:
-            await asyncio.sleep(0.02)
-
-    def close(self) -> None:
-        for s in self._subs:
-            with contextlib.suppress(Exception):
-                s.undeclare()
-
-
-async def wait_until(cond, what: str, timeout_s: float) -> None:  # noqa: ANN001
-    """Wait (wall time) for ``cond()``; RuntimeError naming ``what`` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"{what} within {timeout_s:.0f} s")
-        await asyncio.sleep(0.05)
-
-
 async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
     """Teleport the simulated robot and tell localization where it is; wait for the estimate to agree."""
     await wait_until(lambda: c.odom_count > 5, "no odometry (is drive running and its CAN link up?)", 90.0)
@@ -440,7 +148,7 @@ async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
             return (e is not None and c.pose_count > count_at_set  # noqa: B023
                     and (e.state == "tracking" or not converged)
                     and math.hypot(e.pose.x - pose[0], e.pose.y - pose[1]) < 0.1
-                    and abs(wrap(e.pose.theta - pose[2])) < 0.1)
+                    and abs(wrap_angle(e.pose.theta - pose[2])) < 0.1)
 
         try:  # localization converges at rest (state "tracking"); a map where it cannot settle keeps the near pose
             with contextlib.suppress(RuntimeError):
@@ -498,7 +206,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         reply = await c.query("nav/goal", req)
     t0 = c.sim_time
     collisions_before = c.collisions
-    result = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
+    result: dict[str, Any] = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
               "error": [None] * 3, "time_s": 0.0, "claimed": "rejected", "nav_error": reply.reason,
               "recoveries": 0, "collisions": 0, "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
     if not reply.accepted:
@@ -535,10 +243,10 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         if c.truth is not None:
             p = c.truth.pose
             result["final"] = [p.x, p.y, p.theta]
-            result["error"] = [p.x - goal.pose[0], p.y - goal.pose[1], wrap(p.theta - goal.pose[2])]
+            result["error"] = [p.x - goal.pose[0], p.y - goal.pose[1], wrap_angle(p.theta - goal.pose[2])]
             est = c.estimate()
             if est is not None:  # how far localization was off at the end (diagnostic, not in the JSON)
-                c.localization_errors.append((est[0] - p.x, est[1] - p.y, wrap(est[2] - p.theta)))
+                c.localization_errors.append((est[0] - p.x, est[1] - p.y, wrap_angle(est[2] - p.theta)))
         judge_leg(result, state, error, leg, c.collisions - collisions_before, xy_tol_m, yaw_tol_rad)
         if state != "succeeded":
             print(f"scenario: run {run} goal {goal.id}: {state} {error}", flush=True)
@@ -558,8 +266,8 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     return result
 
 
-async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,  # noqa: ANN001
-                       progress=print, truth_yaml: str | Path | None = None,  # noqa: ANN001
+async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: float, plots: bool,
+                       progress=print, truth_yaml: str | Path | None = None,
                        ) -> tuple[list[dict], list[Leg], int, list[bool], Any]:
     """Run the mapping phase (when the scenario has one; ``truth_yaml`` is the world's ground-truth map) and the
     goals; returns (runs, plotted legs, collisions, detours per obstacle leg, MappingResult or None)."""
@@ -629,8 +337,8 @@ def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> 
         if grid is not None and grid.width:
             data = codec.array(grid, "data").reshape(grid.height, grid.width)
             img = np.where(data < 0, 0.6, 1.0 - np.clip(data, 0, 100) / 100.0)
-            ext = [grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
-                   grid.origin.y + grid.height * grid.resolution]
+            ext = (grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
+                   grid.origin.y + grid.height * grid.resolution)
             ax.imshow(img, cmap="gray", origin="lower", extent=ext, vmin=0, vmax=1)
         for r in leg.obstacles:
             ax.add_patch(plt.Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], color="orange", alpha=0.8,

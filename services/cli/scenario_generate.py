@@ -21,6 +21,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -48,7 +49,8 @@ class FreeSpace:
         return (int(math.floor((y - self.origin_xy[1]) / self.resolution_m)),
                 int(math.floor((x - self.origin_xy[0]) / self.resolution_m)))
 
-    def centre(self, r: int, c: int) -> tuple[float, float]:
+    def centre(self, r: Any, c: Any) -> tuple[Any, Any]:
+        """Centre (x_m, y_m) of cells (row r, column c): scalars or arrays."""
         return (self.origin_xy[0] + (c + 0.5) * self.resolution_m, self.origin_xy[1] + (r + 0.5) * self.resolution_m)
 
     def clearance_at(self, x: float, y: float) -> float:
@@ -142,7 +144,7 @@ def map_label(map_yaml: str) -> str:
     return p.parent.name if p.stem in ("map", "") else p.stem
 
 
-def load_solid(map_yaml: str | None, world: str | None):  # noqa: ANN201
+def load_solid(map_yaml: str | None, world: str | None):
     """The simulator's world for a map YAML or a built-in world name."""
     from services.sim.world import load_world
 
@@ -205,12 +207,13 @@ def run_generate(args: argparse.Namespace) -> int:
     if args.goals < 1:
         print("zagv scenario generate: --goals must be >= 1", file=sys.stderr)
         return 2
-    start = None
+    start: tuple[float, float, float] | None = None
     if args.start:
         try:
-            start = tuple(float(v) for v in args.start.split(","))
-            if len(start) != 3 or not all(math.isfinite(v) for v in start):
+            x, y, theta = (float(v) for v in args.start.split(","))
+            if not all(math.isfinite(v) for v in (x, y, theta)):
                 raise ValueError
+            start = (x, y, theta)
         except ValueError:
             print(f"zagv scenario generate: --start must be x,y,theta numbers, got {args.start!r}", file=sys.stderr)
             return 2

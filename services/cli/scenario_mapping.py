@@ -26,11 +26,11 @@ import numpy as np
 
 from proto import codec
 from proto import messages as m
-from services.cli.scenario import wrap
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 
 if TYPE_CHECKING:
-    from services.cli.scenario import Client
+    from services.cli.scenario_client import Client
 
 Pose = tuple[float, float, float]
 
@@ -53,7 +53,7 @@ def jog_command(pose: Pose, target: Pose, spec: RobotSpec, speed_mps: float, *, 
 
     World error (dx, dy) -> body (bx, by) = R(-theta) (dx, dy); speed ``v = min(speed_mps, kp_xy * |b|)`` along it,
     scaled down as a whole (direction kept) to fit ``vx_min..vx_max`` and ``|vy| <= vy_max``; ``wz = kp_yaw *
-    wrap(target_theta - theta)`` clamped to ``wz_max``.
+    wrap_angle(target_theta - theta)`` clamped to ``wz_max``.
     """
     dx, dy = target[0] - pose[0], target[1] - pose[1]
     c, s = math.cos(pose[2]), math.sin(pose[2])
@@ -67,12 +67,13 @@ def jog_command(pose: Pose, target: Pose, spec: RobotSpec, speed_mps: float, *, 
         scale = min(1.0, limit_x / abs(vx) if abs(vx) > 1e-12 else 1.0,
                     spec.vy_max_mps / abs(vy) if abs(vy) > 1e-12 else 1.0)
         vx, vy = vx * scale, vy * scale
-    wz = kp_yaw * wrap(target[2] - pose[2])
-    return spec.clamp_twist(vx, vy, wz)
+    wz = kp_yaw * wrap_angle(target[2] - pose[2])
+    return spec.twist_limits().clamp(vx, vy, wz)
 
 
 def arrived(pose: Pose, target: Pose, xy_m: float = WAYPOINT_XY_M, yaw_rad: float = WAYPOINT_YAW_RAD) -> bool:
-    return math.hypot(target[0] - pose[0], target[1] - pose[1]) < xy_m and abs(wrap(target[2] - pose[2])) < yaw_rad
+    return (math.hypot(target[0] - pose[0], target[1] - pose[1]) < xy_m
+            and abs(wrap_angle(target[2] - pose[2])) < yaw_rad)
 
 
 def route_length_m(start: Pose, route: list[Pose]) -> float:
@@ -186,7 +187,7 @@ class JogStats:
     max_gap_s: float = 0.0  # sim
 
 
-async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:  # noqa: ANN001
+async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, progress=print) -> JogStats:
     """Drive the route by ``cmd_vel``. RuntimeError on a collision or a waypoint not reached within a generous
     sim-time allowance. Commands that come late (the sim outruns this process) are counted in the stats."""
     pub = c.session.declare_publisher(c.keys("cmd_vel"))
@@ -201,7 +202,7 @@ async def jog(c: Client, route: list[Pose], spec: RobotSpec, speed_mps: float, p
         for k, target in enumerate(route, 1):
             p = c.truth.pose
             need_s = math.hypot(target[0] - p.x, target[1] - p.y) / speed_mps \
-                + abs(wrap(target[2] - p.theta)) / spec.wz_max_radps
+                + abs(wrap_angle(target[2] - p.theta)) / spec.wz_max_radps
             deadline = c.sim_time + 3.0 * need_s + 30.0
             while True:
                 c.truth_changed.clear()
@@ -256,7 +257,7 @@ class NavMapWatch:
         loop = asyncio.get_running_loop()
         self._subs = []
         for name, cb in (("map", self._on_map), ("nav/costmap", self._on_costmap)):
-            def on_sample(sample, cb=cb) -> None:  # noqa: ANN001
+            def on_sample(sample, cb=cb) -> None:
                 try:
                     msg = codec.decode_as(m.OccupancyGrid, sample.payload.to_bytes(), str(sample.key_expr))
                 except codec.ProtoDecodeError:
@@ -296,9 +297,9 @@ class NavMapWatch:
 
 
 async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, speed_mps: float,
-                      truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:  # noqa: ANN001
+                      truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:
     """The whole phase: check the route, jog it, save the map, score it, navigate on it (module docstring)."""
-    from services.cli.scenario import wait_until
+    from services.cli.scenario_client import wait_until
     from services.localization.map_io import load_map
 
     check_route(start, route, truth_yaml, spec)

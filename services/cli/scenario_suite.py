@@ -32,6 +32,7 @@ import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from services.cli.scenario import leg_totals, load_scenario, run_scenario
 from services.cli.scenario_generate import GenerateError, generate_file, map_label
@@ -194,7 +195,9 @@ def run_suite(args: argparse.Namespace) -> int:
         print(f"zagv scenario suite: {name}: map not found (give --maps-dir), skipped", flush=True)
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-suite-"))
     run_dir.mkdir(parents=True, exist_ok=True)
-    rows, all_runs, raw = [], [], []
+    rows: list[dict[str, Any]] = []
+    all_runs: list[dict[str, Any]] = []
+    raw: list[dict[str, Any]] = []
 
     def write_json() -> None:
         if args.json:

@@ -11,7 +11,6 @@ import contextlib
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -19,16 +18,11 @@ import time
 from pathlib import Path
 
 from proto.keys import Keys
+from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Stack:
@@ -144,7 +138,7 @@ class Stack:
 
     # ------------------------------------------------------------------ zenoh
 
-    def session(self):  # noqa: ANN201 - zenoh.Session
+    def session(self):  # zenoh.Session
         """A Zenoh client session to the stack's router (closed at teardown)."""
         s = open_session(ZenohSettings(mode="client", connect=[self.endpoint]))
         self._sessions.append(s)

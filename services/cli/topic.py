@@ -110,7 +110,8 @@ def run_echo(args: argparse.Namespace) -> int:
             if item is None:
                 print(f"zagv topic echo: no message on {full_key(args)} within {args.timeout} s", file=sys.stderr)
                 return 1
-            print(format_message(*item, as_json=args.json), flush=True)
+            key, payload = item
+            print(format_message(key, payload, as_json=args.json), flush=True)
             n += 1
     except KeyboardInterrupt:
         pass

@@ -10,11 +10,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import importlib.util
 import os
 import random
 import signal
-import socket
 import tempfile
 import time
 from dataclasses import dataclass, field
@@ -29,16 +27,9 @@ from services.common.lifetime import die_with_parent
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 
-#: services in start order; those whose package has no __main__ yet are skipped
+#: services in start order (each is ``python -m services.<name>``)
 SERVICES = ["sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def service_available(name: str) -> bool:
-    try:
-        return importlib.util.find_spec(f"services.{name}.__main__") is not None
-    except ModuleNotFoundError:  # no such package in this build
-        return False
 
 
 @dataclass
@@ -83,12 +74,12 @@ class StackPlan:
         return f"ws://127.0.0.1:{self.can_port}/"
 
     def services(self) -> list[str]:
-        names = [s for s in SERVICES if service_available(s)]
+        names = list(SERVICES)
         if not self.sim:
             names = [s for s in names if s != "sim"]
         if self.headless:
             names = [s for s in names if s != "hmi_api"]
-        if self.foxglove_port and service_available("foxglove_bridge"):  # opt-in: it opens a port
+        if self.foxglove_port:  # opt-in: it opens a port
             names.insert(len(names) - ("hmi_api" in names), "foxglove_bridge")
         if self.vda5050:
             names.append("vda5050")
@@ -157,15 +148,9 @@ def _toml_str(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def render_world_map(plan: StackPlan) -> None:
     """Have the simulator write its world's map (YAML + PGM) into the run folder for localization."""
-    if not plan.sim or plan.map_yaml or not service_available("sim"):
+    if not plan.sim or plan.map_yaml:
         return
     import subprocess
 
@@ -178,7 +163,7 @@ def render_world_map(plan: StackPlan) -> None:
 class HealthWatch:
     """Tracks liveliness tokens under ``agv/<id>/@health/*`` (thread-safe set)."""
 
-    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:  # noqa: ANN001
+    def __init__(self, session: zenoh.Session, keys: Keys, on_change) -> None:
         self.alive: set[str] = set()
         self._on_change = on_change
         self._sub = session.liveliness().declare_subscriber(keys.health_all, self._on_sample, history=True)
@@ -195,7 +180,7 @@ class HealthWatch:
         self._sub.undeclare()
 
 
-async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:  # noqa: ANN001
+async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:
     """Run the stack until SIGINT/SIGTERM; returns the exit code."""
     loop = asyncio.get_running_loop()
     if plan.external_router:  # a client like the services: the router may stop and come back
@@ -255,7 +240,7 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
     return code
 
 
-async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:  # noqa: ANN001
+async def start_children(plan: StackPlan, supervisor: Supervisor, stop: asyncio.Event, announce) -> None:
     """Start every child, in the plan's order or (``start_seed``) in a random order with random delays."""
     specs = plan.children()
     if plan.start_seed is None:

@@ -20,7 +20,7 @@ class SavedBag:
 
 def list_bags(folder: Path) -> list[SavedBag]:
     """Every ``blackbox_*`` rosbag2 folder in ``folder`` (newest first); unreadable metadata counts as empty."""
-    out = []
+    out: list[SavedBag] = []
     if not folder.is_dir():
         return out
     for bag in folder.glob("blackbox_*"):

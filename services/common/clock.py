@@ -17,7 +17,13 @@ log = logging.getLogger(__name__)
 
 
 class Clock(Protocol):
+    """What services read time through: ``now()`` in s, sleeps, and whether it is the simulator's clock."""
+
+    is_sim: bool
+
     def now(self) -> float: ...
+
+    async def wait_started(self) -> None: ...
 
     async def sleep_until(self, t: float) -> None: ...
 
@@ -31,6 +37,9 @@ class WallClock:
 
     def now(self) -> float:
         return time.time()
+
+    async def wait_started(self) -> None:
+        """Wall time runs from the start."""
 
     async def sleep(self, dt: float) -> None:
         await asyncio.sleep(max(0.0, dt))

@@ -16,7 +16,7 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import msgspec
 import zenoh
@@ -80,7 +80,7 @@ class LatchedFetch:
         self.fetches = 0
         self._querier = session.declare_querier(key, timeout=5.0, consolidation=zenoh.ConsolidationMode.NONE)
         self._listener = self._querier.declare_matching_listener(self._on_matching)
-        if self._querier.matching_status.matching:
+        if self._querier.matching_status.matching:  # type: ignore[attr-defined]  # a MatchingStatus, not bool
             self._fetch()
 
     def _on_matching(self, status: zenoh.MatchingStatus) -> None:
@@ -152,7 +152,7 @@ class Node:
 
     def spawn(self, coro: Awaitable[Any]) -> asyncio.Task[Any]:
         """Run ``coro`` as a task on the loop, keeping a reference until it ends (loop thread only)."""
-        task = self.loop.create_task(coro)  # type: ignore[arg-type]
+        task: asyncio.Task[Any] = self.loop.create_task(coro)  # type: ignore[arg-type]
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
         return task
@@ -177,7 +177,7 @@ class Node:
             self.log.warning("dropped bad payload #%d on %s: %s", self.bad_payloads[key], key, exc)
 
     def _decoder(self, name: str, t: type[T] | None) -> Callable[[zenoh.Sample], T | None]:
-        msg_type = t or codec.topic_type(name)
+        msg_type = t if t is not None else cast("type[T]", codec.topic_type(name))
 
         def decode(sample: zenoh.Sample) -> T | None:
             key = str(sample.key_expr)
@@ -280,9 +280,7 @@ class Node:
         async def run(query: zenoh.Query, request: Message) -> None:
             try:
                 result = handler(request)
-                if asyncio.iscoroutine(result):
-                    result = await result
-                send(query, result)
+                send(query, await result if asyncio.iscoroutine(result) else cast(Message, result))
             except Exception as exc:  # the caller gets the reason; the service goes on
                 self.log.exception("query %s failed", name)
                 if rep_type is Reply:

@@ -57,12 +57,12 @@ def _get_once(session: zenoh.Session, key: str, payload: bytes, timeout_s: float
     def on_reply(reply: zenoh.Reply) -> None:
         if reply.ok is not None:
             try:
-                msg = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
+                msg: Any = codec.decode_as(rep_type, reply.ok.payload.to_bytes(), key)
                 deliver(("reply", msg))
             except codec.ProtoDecodeError as exc:
                 deliver(("error", QueryError(str(exc))))
         else:
-            text = reply.err.payload.to_bytes().decode(errors="replace")
+            text = reply.err.payload.to_bytes().decode(errors="replace") if reply.err is not None else "no reply"
             deliver(("error", QueryError(f"{key}: {text}")))
 
     def on_done() -> None:

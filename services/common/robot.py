@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import msgspec
 
@@ -42,13 +43,53 @@ class RobotSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     laser_mount_y_m: float = 0.0
     laser_mount_theta_rad: float = 0.0
 
-    def clamp_twist(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
-        """Clamp a body twist (m/s, m/s, rad/s) to the Table 2 box; non-finite components become 0."""
+    def twist_limits(self) -> TwistLimits:
+        """The Table 2 velocity box and the acceleration limits as one TwistLimits."""
+        return TwistLimits(self.vx_min_mps, self.vx_max_mps, self.vy_max_mps, self.wz_max_radps,
+                           self.ax_max_mps2, self.ay_max_mps2, self.alpha_max_radps2)
+
+
+Twist3 = tuple[float, float, float]
+"""A body twist (vx m/s, vy m/s, wz rad/s)."""
+
+
+@dataclass(frozen=True, slots=True)
+class TwistLimits:
+    """The commanded body twist's limits: vx in [vx_min, vx_max] m/s, |vy| <= vy_max m/s, |wz| <= wz_max rad/s,
+    and per axis |dv/dt| <= ax, ay m/s^2, |dwz/dt| <= alpha rad/s^2 (the paper's Table 2; RobotSpec)."""
+
+    vx_min_mps: float = -0.1
+    vx_max_mps: float = 0.2
+    vy_max_mps: float = 0.2
+    wz_max_radps: float = 0.5
+    ax_max_mps2: float = 0.5
+    ay_max_mps2: float = 0.5
+    alpha_max_radps2: float = 1.0
+
+    def clamp(self, vx: float, vy: float, wz: float) -> Twist3:
+        """Clamp into the velocity box; a non-finite component becomes 0 (it never reaches a motor)."""
         vx = vx if math.isfinite(vx) else 0.0
         vy = vy if math.isfinite(vy) else 0.0
         wz = wz if math.isfinite(wz) else 0.0
-        return (
-            min(max(vx, self.vx_min_mps), self.vx_max_mps),
-            min(max(vy, -self.vy_max_mps), self.vy_max_mps),
-            min(max(wz, -self.wz_max_radps), self.wz_max_radps),
-        )
+        return (min(max(vx, self.vx_min_mps), self.vx_max_mps),
+                min(max(vy, -self.vy_max_mps), self.vy_max_mps),
+                min(max(wz, -self.wz_max_radps), self.wz_max_radps))
+
+    def accelerate(self, current: Twist3, target: Twist3, dt_s: float) -> Twist3:
+        """Move ``current`` toward ``target`` by at most a_max * dt per axis (dt <= 0 or not finite keeps
+        ``current``)."""
+        if not dt_s > 0.0 or not math.isfinite(dt_s):
+            return current
+        return (_step(current[0], target[0], self.ax_max_mps2 * dt_s),
+                _step(current[1], target[1], self.ay_max_mps2 * dt_s),
+                _step(current[2], target[2], self.alpha_max_radps2 * dt_s))
+
+
+def _step(value: float, target: float, max_delta: float) -> float:
+    """``target``, or ``value`` moved by ``max_delta`` toward it when it is further."""
+    delta = target - value
+    if delta > max_delta:
+        return value + max_delta
+    if delta < -max_delta:
+        return value - max_delta
+    return target

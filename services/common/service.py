@@ -45,7 +45,7 @@ class ServiceContext:
     stop: asyncio.Event = field(default_factory=asyncio.Event)
 
     @property
-    def clock(self):  # noqa: ANN201 - Clock protocol
+    def clock(self):  # Clock protocol
         return self.node.clock
 
 
@@ -124,7 +124,7 @@ def service_main(
         asyncio.run(_amain(name, run, robot, zenoh_settings, clock_settings, tables, args.config))
 
 
-async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, config_path) -> None:  # noqa: ANN001
+async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, config_path) -> None:
     loop = asyncio.get_running_loop()
     session = open_session(zenoh_settings)
     clock = SimClock() if clock_settings.use_sim_time else WallClock()

@@ -27,7 +27,6 @@ import json
 import math
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -41,12 +40,12 @@ from proto import codec
 from proto.keys import Keys
 from proto.messages import Twist2D, WheelStates
 from services.common.bench import BenchRow, time_calls
+from services.common.ports import free_port
 from services.common.robot import RobotSpec
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
 from services.drive.kinematics import SwerveKinematics, Twist
-from services.drive.limits import TwistLimits
 from services.drive.units import MotorUnits
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -61,7 +60,7 @@ def bench_kinematics() -> list[BenchRow]:
         kin.to_twist(kin.to_module_states(twist))
 
     units = [MotorUnits(), MotorUnits()]
-    ctl = DriveController(kin, units, TwistLimits.from_robot(robot))
+    ctl = DriveController(kin, units, robot.twist_limits())
     odo = WheelOdometry(kin, units)
     counts = [0]
 
@@ -74,12 +73,6 @@ def bench_kinematics() -> list[BenchRow]:
     t_step = time_calls(step, repeat=5000)
     return [BenchRow("kinematics.ik_fk_us", float(np.median(t_ikfk)) * 1e6, "us", "< 50 (1 kHz loop budget)"),
             BenchRow("kinematics.command_us", float(np.median(t_step)) * 1e6, "us", "< 200")]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def realtime_allowed() -> bool:
@@ -166,7 +159,7 @@ def watch_main(channel: str, out: str, cob_id: int) -> None:
         bus.shutdown()
 
 
-def _stats(session, keys: Keys) -> dict:  # noqa: ANN001 - zenoh.Session
+def _stats(session, keys: Keys) -> dict:  # zenoh.Session
     for reply in session.get(keys("@stats/drive"), timeout=2.0):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
@@ -182,7 +175,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
     if realtime is None:
         realtime = realtime_allowed()
     fifo = 10 if realtime else 0
-    zenoh_port, can_port, lidar_port = _free_port(), _free_port(), _free_port()
+    zenoh_port, can_port, lidar_port = free_port(), free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{zenoh_port}"
     channel = f"ws://127.0.0.1:{can_port}/"
     keys = Keys("r1")

@@ -41,6 +41,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import can
 import canopen
@@ -151,11 +152,12 @@ class RoboteqLink:
         """
         s = self.settings
         try:
-            kwargs = {"interface": s.interface, "channel": s.channel}
+            kwargs: dict[str, Any] = {"interface": s.interface, "channel": s.channel}
             if s.bitrate:
                 kwargs["bitrate"] = s.bitrate
-            network = canopen.Network(can.Bus(**kwargs))
-            network.notifier = can.Notifier(network.bus, network.listeners, 0.02)
+            bus = can.Bus(**kwargs)
+            network = canopen.Network(bus)
+            network.notifier = can.Notifier(bus, network.listeners, 0.02)
         except Exception as exc:  # python-can raises many kinds (OSError, CanError, websocket errors)
             raise LinkError(f"cannot open CAN bus {s.interface}:{s.channel}: {type(exc).__name__}: {exc}") from None
         self.network = network
@@ -193,6 +195,8 @@ class RoboteqLink:
         if network is None:
             raise LinkError("CAN link is closed")
         bus = network.bus
+        if bus is None:
+            raise LinkError("CAN link has no bus")
         n = 0
         try:
             while n < max_frames:
@@ -229,6 +233,7 @@ class RoboteqLink:
     # ------------------------------------------------------------------ start-up
 
     def _configure(self, node: canopen.RemoteNode) -> None:
+        node_id = int(node.id or 0)
         s = self.settings
         sdo = node.sdo
         try:
@@ -240,9 +245,9 @@ class RoboteqLink:
             raise LinkError(f"node {node.id} does not answer SDO: {exc}") from None
         if not s.configure_pdos:
             return
-        self._map_pdo(node, 0x1400, 0x1600, RPDO_COB[0] + node.id, RPDO1_MAP, trans_type=255, timer_ms=0)
+        self._map_pdo(node, 0x1400, 0x1600, RPDO_COB[0] + node_id, RPDO1_MAP, trans_type=255, timer_ms=0)
         for k, entries in enumerate(TPDO_MAPS):
-            self._map_pdo(node, 0x1800 + k, 0x1A00 + k, TPDO_COB[k] + node.id, entries, trans_type=255,
+            self._map_pdo(node, 0x1800 + k, 0x1A00 + k, TPDO_COB[k] + node_id, entries, trans_type=255,
                           timer_ms=s.tpdo_period_ms if k < 2 else s.tpdo_slow_period_ms)
 
     def _map_pdo(self, node: canopen.RemoteNode, comm: int, mapping: int, cob_id: int,
@@ -312,7 +317,7 @@ class RoboteqLink:
 
     # ------------------------------------------------------------------ frames in (dispatch)
 
-    def _heartbeat_handler(self, i: int):  # noqa: ANN202
+    def _heartbeat_handler(self, i: int):
         state = self.states
 
         def on_heartbeat(can_id: int, data: bytearray, timestamp: float) -> None:
@@ -322,7 +327,7 @@ class RoboteqLink:
 
         return on_heartbeat
 
-    def _tpdo_handler(self, i: int, k: int):  # noqa: ANN202
+    def _tpdo_handler(self, i: int, k: int):
         layouts = (TPDO1, TPDO2, TPDO3, TPDO4)
         layout = layouts[k]
         field = ("counts", "rpm", "amps_flags", "extra")[k]

@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from services.common.robot import TwistLimits
 from services.drive.kinematics import (
     ZERO_TWIST,
     ModuleState,
@@ -26,7 +27,6 @@ from services.drive.kinematics import (
     desaturate,
     optimize,
 )
-from services.drive.limits import TwistLimits
 from services.drive.odometry import Pose
 from services.drive.units import MotorUnits
 
@@ -109,8 +109,9 @@ class DriveController:
 
     def command(self, target: Twist, dt_s: float, measured_angles: Sequence[float] | None = None) -> CommandResult:
         """One cycle of the command path toward ``target`` (body twist) after ``dt_s`` seconds."""
-        target = self.limits.clamp(target)
-        commanded = self.limits.accelerate(self.commanded, target, dt_s)
+        clamped = self.limits.clamp(target.vx, target.vy, target.wz)
+        now = self.commanded
+        commanded = Twist(*self.limits.accelerate((now.vx, now.vy, now.wz), clamped, dt_s))
         if not commanded.is_finite():
             commanded = ZERO_TWIST
         raw = desaturate(self.kinematics.to_module_states(commanded, self.setpoints, self.hold_speed_mps),

@@ -14,6 +14,9 @@ import math
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
+
+from services.common.se2 import wrap_angle
 
 log = logging.getLogger("zagv.drive.imu")
 
@@ -51,9 +54,7 @@ def parse_line(line: str) -> ImuSample:
     if not all(math.isfinite(x) for x in v):
         raise ImuParseError(f"{PREFIX} has a non-finite value: {text[:80]!r}")
     yaw, pitch, roll, ax, ay, az, gx, gy, gz = v
-    yaw_rad = math.radians(-yaw)
-    yaw_rad = math.atan2(math.sin(yaw_rad), math.cos(yaw_rad))
-    return ImuSample(yaw_rad, math.radians(-pitch), math.radians(roll), (gx, -gy, -gz),
+    return ImuSample(wrap_angle(math.radians(-yaw)), math.radians(-pitch), math.radians(roll), (gx, -gy, -gz),
                      (-ax * G_PER_LSB, ay * G_PER_LSB, az * G_PER_LSB))
 
 
@@ -97,7 +98,8 @@ class RazorReader:
                 self.error = str(exc)
                 self._stop.wait(self.reopen_s)
 
-    def _read_lines(self, ser) -> None:  # noqa: ANN001 - serial.Serial
+    def _read_lines(self, ser: Any) -> None:
+        """Read ``#YPRAG=`` lines from ``ser`` (a serial.Serial) until stopped."""
         buf = b""
         while not self._stop.is_set():
             chunk = ser.read(ser.in_waiting or 1)

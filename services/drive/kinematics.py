@@ -66,11 +66,6 @@ class ForwardResult:
     residual_mps: float
 
 
-def wrap_angle(a: float) -> float:
-    """Wrap an angle (rad) into [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 class SwerveKinematics:
     """Inverse and least-squares forward kinematics for modules at ``positions`` [(x_i, y_i) m] in base_link."""
 

@@ -383,7 +383,7 @@ class DriveLoop:
             result = self.controller.stop()
         else:
             fresh = cmd is not None and now - cmd_at <= s.cmd_timeout_s
-            result = self.controller.command(cmd if fresh else ZERO_TWIST, dt, angles or None)
+            result = self.controller.command(cmd if cmd is not None and fresh else ZERO_TWIST, dt, angles or None)
         if link is not None and (result.motors != self._last_sent or now - self._last_sent_at >= s.rpdo_refresh_s):
             try:
                 link.send(result.motors)

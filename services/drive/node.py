@@ -21,9 +21,17 @@ from services.common.service import ServiceContext
 from services.drive.canlink import RoboteqLink
 from services.drive.config import DriveConfig
 from services.drive.controller import DriveController, WheelOdometry
+from services.drive.enable import (
+    DISABLED,
+    ENABLED,
+    enable_refusal,
+    estop_sent,
+    estop_unreachable,
+    release_refusal,
+    release_sent,
+)
 from services.drive.imu import ImuSample, RazorReader
 from services.drive.kinematics import SwerveKinematics
-from services.drive.limits import TwistLimits
 from services.drive.loop import DriveLoop, LoopSettings, SimTicker, Snapshot, WallTicker
 
 log = logging.getLogger("zagv.drive")
@@ -33,7 +41,7 @@ POSE_COVARIANCE = [1e-3, 0.0, 0.0, 0.0, 1e-3, 0.0, 0.0, 0.0, 2e-3]
 TWIST_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 4e-4]
 
 
-def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,  # noqa: ANN001
+def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,
                enabled: bool | None = None) -> DriveLoop:
     """The drive's control loop from the robot spec and the [drive] table (raises ValueError on bad config);
     ``enabled`` (default ``drive.auto_enable``) is its enable state at start."""
@@ -42,7 +50,7 @@ def build_loop(ctx_robot, cfg: DriveConfig, ticker: WallTicker | SimTicker,  # n
                          f"{len(ctx_robot.modules)} modules")
     kinematics = SwerveKinematics([(m.x_m, m.y_m) for m in ctx_robot.modules])
     units = cfg.motor_units()
-    controller = DriveController(kinematics, units, TwistLimits.from_robot(ctx_robot), cfg.steering_limits(),
+    controller = DriveController(kinematics, units, ctx_robot.twist_limits(), cfg.steering_limits(),
                                  wheel_speed_max_mps=ctx_robot.wheel_speed_max_mps,
                                  hold_speed_mps=cfg.hold_speed_mps, cosine_scaling=cfg.cosine_scaling)
     odometry = WheelOdometry(kinematics, units, max_step_m=cfg.max_odom_step_m)
@@ -82,132 +90,139 @@ def odometry_message(snap: Snapshot) -> Odometry:
                     pose_covariance=list(POSE_COVARIANCE), twist_covariance=list(TWIST_COVARIANCE))
 
 
-async def run(ctx: ServiceContext) -> None:
-    cfg: DriveConfig = ctx.config["drive"]
-    logging.getLogger("canopen").setLevel(logging.WARNING)
-    logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)  # our LinkError says what failed
-    logging.getLogger("can").setLevel(logging.WARNING)
-    node = ctx.node
-    sim = bool(getattr(ctx.clock, "is_sim", False))
-    ticker: WallTicker | SimTicker = SimTicker(cfg.rate_hz) if sim else WallTicker(cfg.rate_hz, cfg.spin_s)
-    if not sim:
-        # the loop thread must get the GIL back quickly after its sleep: shorten the interpreter's switch interval
-        sys.setswitchinterval(min(sys.getswitchinterval(), max(1e-4, 0.25 / cfg.rate_hz)))
-    restarted = is_restart("drive")
-    loop = build_loop(ctx.robot, cfg, ticker, enabled=cfg.auto_enable and not restarted)
-    if restarted:
-        log.warning("restarted: the drive stays disabled until drive/enable (an e-stop the controllers hold stays "
-                    "until drive/release)")
-    odom_pub = node.publisher("odom")
-    wheels_pub = node.publisher("wheels")
+class DriveService:
+    """Subscriptions, queries and publishers around the control loop (the loop runs on its own thread)."""
 
-    stats_due = [0.0]
+    def __init__(self, ctx: ServiceContext) -> None:
+        cfg: DriveConfig = ctx.config["drive"]
+        self.ctx, self.cfg, self.node = ctx, cfg, ctx.node
+        self.sim = ctx.clock.is_sim
+        sim_ticker = SimTicker(cfg.rate_hz) if self.sim else None
+        ticker: WallTicker | SimTicker = sim_ticker or WallTicker(cfg.rate_hz, cfg.spin_s)
+        if not self.sim:
+            # the loop thread must get the GIL back quickly after its sleep: shorten the interpreter's switch interval
+            sys.setswitchinterval(min(sys.getswitchinterval(), max(1e-4, 0.25 / cfg.rate_hz)))
+        restarted = is_restart("drive")
+        self.loop = build_loop(ctx.robot, cfg, ticker, enabled=cfg.auto_enable and not restarted)
+        if restarted:
+            log.warning("restarted: the drive stays disabled until drive/enable (an e-stop the controllers hold "
+                        "stays until drive/release)")
+        self.odom_pub = self.node.publisher("odom")
+        self.wheels_pub = self.node.publisher("wheels")
+        self.stats_due = 0.0
+        self.rejected_logged = 0.0
+        self.loop.publish = self.publish
+        node = self.node
+        if sim_ticker is not None:
+            advance = sim_ticker.advance
+            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True)
+        if cfg.command_source == "safety/cmd_vel":
+            node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True)
+        else:
+            log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
+            node.subscribe("cmd_vel", self.on_cmd, on_zenoh_thread=True)
+        node.queryable("drive/enable", self.enable)
+        node.queryable("drive/disable", self.disable)
+        node.queryable("drive/estop", self.estop)
+        node.queryable("drive/release", self.release)
+        self.imu_reader: RazorReader | None = None
+        if cfg.imu_port:
+            self.imu_pub = node.publisher("imu")
+            self.imu_reader = RazorReader(cfg.imu_port, cfg.imu_baud, self.on_imu)
 
-    def publish(snap: Snapshot) -> None:  # loop thread
-        odom_pub.put(odometry_message(snap))
-        wheels_pub.put(wheel_states(snap))
+    def publish(self, snap: Snapshot) -> None:  # loop thread
+        self.odom_pub.put(odometry_message(snap))
+        self.wheels_pub.put(wheel_states(snap))
         # the @stats figures (percentiles over thousands of samples) are refreshed once per wall second, not at
         # the publish rate: they are read by people and benches
         now = time.monotonic()
-        if now < stats_due[0]:
+        if now < self.stats_due:
             return
-        stats_due[0] = now + 1.0
-        node.extra_stats.update(link_ok=snap.link_ok, fault=snap.fault, enabled=snap.enabled,
-                                estopped=snap.estopped, loop_hz=round(snap.loop_hz, 2),
-                                loop_jitter_p99_ms=round(snap.jitter_p99_ms, 4), loop_overruns=snap.overruns,
-                                reconnects=loop.reconnects, cmd_rejected=loop.cmd_rejected,
-                                refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4),
-                                can_frames_sent=link.frames_sent if (link := loop.link) else 0,
-                                can_error_frames=link.error_frames if link else 0,
-                                cmd_to_bus_p50_ms=round(loop.cmd_latency_ms(50), 4),
-                                cmd_to_bus_p99_ms=round(loop.cmd_latency_ms(99), 4))
+        self.stats_due = now + 1.0
+        loop = self.loop
+        self.node.extra_stats.update(
+            link_ok=snap.link_ok, fault=snap.fault, enabled=snap.enabled, estopped=snap.estopped,
+            loop_hz=round(snap.loop_hz, 2), loop_jitter_p99_ms=round(snap.jitter_p99_ms, 4),
+            loop_overruns=snap.overruns, reconnects=loop.reconnects, cmd_rejected=loop.cmd_rejected,
+            refusals=loop.controller.refusals, odom_distance_m=round(loop.odometry.distance_m, 4),
+            can_frames_sent=link.frames_sent if (link := loop.link) else 0,
+            can_error_frames=link.error_frames if link else 0,
+            cmd_to_bus_p50_ms=round(loop.cmd_latency_ms(50), 4), cmd_to_bus_p99_ms=round(loop.cmd_latency_ms(99), 4))
 
-    loop.publish = publish
-    rejected_logged = [0.0]
-
-    def on_cmd(msg: Twist2D) -> None:  # Zenoh thread
-        if not loop.set_command(msg.vx, msg.vy, msg.wz):
+    def on_cmd(self, msg: Twist2D) -> None:  # Zenoh thread
+        if not self.loop.set_command(msg.vx, msg.vy, msg.wz):
             now = time.monotonic()
-            if now - rejected_logged[0] > 1.0:
-                rejected_logged[0] = now
+            if now - self.rejected_logged > 1.0:
+                self.rejected_logged = now
                 log.error("cmd_vel refused: non-finite value in (vx=%r, vy=%r, wz=%r) (%d refused so far)",
-                          msg.vx, msg.vy, msg.wz, loop.cmd_rejected)
+                          msg.vx, msg.vy, msg.wz, self.loop.cmd_rejected)
 
-    if sim:
-        node.subscribe("clock", lambda c: ticker.advance(c.stamp), on_zenoh_thread=True)
-    if cfg.command_source == "safety/cmd_vel":
-        node.subscribe("safety/cmd_vel", on_cmd, on_zenoh_thread=True)
-    else:
-        log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
-        node.subscribe("cmd_vel", on_cmd, on_zenoh_thread=True)
+    def on_imu(self, sample: ImuSample) -> None:  # IMU thread
+        self.loop.set_imu_yaw_rate(sample.angular_velocity[2])
+        self.imu_pub.put(Imu(stamp=self.ctx.clock.now(), yaw=sample.yaw, pitch=sample.pitch, roll=sample.roll,
+                             angular_velocity=list(sample.angular_velocity),
+                             linear_acceleration=list(sample.linear_acceleration)))
 
-    async def enable(_: Empty) -> Reply:
-        if loop.estopped:
-            return Reply(ok=False, message="e-stop active: release it first (drive/release)")
-        if not loop.link_ok:
-            return Reply(ok=False, message=f"CAN link down: {loop.link_fault}")
+    # ------------------------------------------------------------------ queries (policy: services/drive/enable.py)
+
+    async def enable(self, _: Empty) -> Reply:
+        loop = self.loop
+        refusal = enable_refusal(loop.estopped, loop.link_ok, loop.link_fault)
+        if refusal is not None:
+            return refusal
         loop.controller.reset()
         loop.enabled = True
-        return Reply(ok=True, message="drive enabled")
+        return ENABLED
 
-    async def disable(_: Empty) -> Reply:
-        loop.enabled = False
-        return Reply(ok=True, message="drive disabled: wheels stopped")
+    async def disable(self, _: Empty) -> Reply:
+        self.loop.enabled = False
+        return DISABLED
 
-    async def estop(_: Empty) -> Reply:
+    async def estop(self, _: Empty) -> Reply:
+        loop = self.loop
         loop.estopped = True  # the next cycle commands zero, whatever the controllers answer
         link = loop.link
-        if link is None or not loop.link_ok:
-            return Reply(ok=True, message=f"e-stop latched in drive; controllers unreachable ({loop.link_fault}), "
-                                          "!EX is sent when the link returns")
-        failures = await asyncio.to_thread(link.estop)
-        if failures:
-            return Reply(ok=True, message="e-stop latched in drive; !EX failed on: " + "; ".join(failures))
-        return Reply(ok=True, message="e-stop active on every controller (!EX)")
+        unreachable = estop_unreachable(link is not None and loop.link_ok, loop.link_fault)
+        if unreachable is not None:
+            return unreachable
+        assert link is not None  # reachable
+        return estop_sent(await asyncio.to_thread(link.estop))
 
-    async def release(_: Empty) -> Reply:
-        if not loop.estopped:
-            return Reply(ok=True, message="no e-stop active")
+    async def release(self, _: Empty) -> Reply:
+        loop = self.loop
         link = loop.link
-        if link is None or not loop.link_ok:
-            return Reply(ok=False, message=f"CAN link down, cannot release the controllers: {loop.link_fault}")
-        failures = await asyncio.to_thread(link.release)
-        if failures:
-            return Reply(ok=False, message="!MG failed on: " + "; ".join(failures))
-        loop.released()
-        return Reply(ok=True, message="e-stop released (!MG)")
+        refusal = release_refusal(loop.estopped, link is not None and loop.link_ok, loop.link_fault)
+        if refusal is not None:
+            return refusal
+        assert link is not None  # reachable
+        reply = release_sent(await asyncio.to_thread(link.release))
+        if reply.ok:
+            loop.released()
+        return reply
 
-    node.queryable("drive/enable", enable)
-    node.queryable("drive/disable", disable)
-    node.queryable("drive/estop", estop)
-    node.queryable("drive/release", release)
-
-    imu_reader = None
-    if cfg.imu_port:
-        imu_pub = node.publisher("imu")
-
-        def on_imu(sample: ImuSample) -> None:  # IMU thread
-            loop.set_imu_yaw_rate(sample.angular_velocity[2])
-            imu_pub.put(Imu(stamp=ctx.clock.now(), yaw=sample.yaw, pitch=sample.pitch, roll=sample.roll,
-                            angular_velocity=list(sample.angular_velocity),
-                            linear_acceleration=list(sample.linear_acceleration)))
-
-        imu_reader = RazorReader(cfg.imu_port, cfg.imu_baud, on_imu)
-        imu_reader.start()
-
-    loop.start()
-
-    def link_known() -> str | None:  # readiness: the CAN link is up, or its first opening failed and says why
-        if loop.link_ok:
+    def link_known(self) -> str | None:  # readiness: the CAN link is up, or its first opening failed and says why
+        if self.loop.link_ok:
             return "CAN link up"
-        return f"CAN link down: {loop.link_fault}" if loop.link_attempts else None
+        return f"CAN link down: {self.loop.link_fault}" if self.loop.link_attempts else None
 
-    node.spawn(node.ready_when(link_known, ctx.stop))
-    log.info("control loop at %.0f Hz on the %s clock, CAN %s %s", cfg.rate_hz, "sim" if sim else "wall",
-             cfg.can_interface, cfg.can_channel)
-    try:
-        await ctx.stop.wait()
-    finally:
-        await asyncio.to_thread(loop.stop)
-        if imu_reader is not None:
-            await asyncio.to_thread(imu_reader.stop)
+    async def run(self) -> None:
+        if self.imu_reader is not None:
+            self.imu_reader.start()
+        self.loop.start()
+        self.node.spawn(self.node.ready_when(self.link_known, self.ctx.stop))
+        cfg = self.cfg
+        log.info("control loop at %.0f Hz on the %s clock, CAN %s %s", cfg.rate_hz, "sim" if self.sim else "wall",
+                 cfg.can_interface, cfg.can_channel)
+        try:
+            await self.ctx.stop.wait()
+        finally:
+            await asyncio.to_thread(self.loop.stop)
+            if self.imu_reader is not None:
+                await asyncio.to_thread(self.imu_reader.stop)
+
+
+async def run(ctx: ServiceContext) -> None:
+    logging.getLogger("canopen").setLevel(logging.WARNING)
+    logging.getLogger("canopen.sdo.client").setLevel(logging.CRITICAL)  # our LinkError says what failed
+    logging.getLogger("can").setLevel(logging.WARNING)
+    await DriveService(ctx).run()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from services.common.se2 import compose, wrap_angle
 from services.drive.kinematics import Twist
 
 
@@ -35,9 +36,7 @@ class Pose:
             c = math.sin(half) * math.sin(half) * 2.0 / dtheta  # (1 - cos d)/d without cancellation
         bx = dx * s - dy * c
         by = dx * c + dy * s
-        ct, st = math.cos(self.theta), math.sin(self.theta)
-        theta = math.atan2(math.sin(self.theta + dtheta), math.cos(self.theta + dtheta))
-        return Pose(self.x + ct * bx - st * by, self.y + st * bx + ct * by, theta)
+        return Pose(*compose((self.x, self.y, self.theta), (bx, by, dtheta)))
 
     def integrate(self, twist: Twist, dt_s: float) -> Pose:
         """The pose after holding ``twist`` (body frame) for ``dt_s`` seconds."""
@@ -55,4 +54,4 @@ def arc_pose(start: Pose, twist: Twist, t_s: float) -> Pose:
     ds, dc = 2.0 * math.cos(m) * k, -2.0 * math.sin(m) * k  # (sin th1 - sin th0)/w, (cos th1 - cos th0)/w
     x = start.x + twist.vx * ds + twist.vy * dc
     y = start.y - twist.vx * dc + twist.vy * ds
-    return Pose(x, y, math.atan2(math.sin(th1), math.cos(th1)))
+    return Pose(x, y, wrap_angle(th1))

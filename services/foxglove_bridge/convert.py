@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from foxglove import messages as fm
@@ -102,7 +103,7 @@ def robot_scene(robot: RobotSpec, wheels: m.WheelStates | None, stamp_s: float) 
     return fm.SceneUpdate(entities=[footprint, modules])
 
 
-def goal_from_json(doc: dict) -> tuple[float, float, float]:
+def goal_from_json(doc: dict[str, Any]) -> tuple[float, float, float]:
     """(x, y, theta) of a published goal: geometry_msgs/PoseStamped or foxglove PoseInFrame as JSON, or a Pose."""
     body = doc.get("pose", doc)
     pos, ori = body["position"], body.get("orientation", {"x": 0, "y": 0, "z": 0, "w": 1})

@@ -25,10 +25,10 @@ from services.foxglove_bridge import convert
 from services.foxglove_bridge.config import FoxgloveConfig
 
 
-class Listener:
+class Listener(foxglove.ServerListener):
     """Foxglove server callbacks (on the SDK's threads): re-send grids on subscribe, goals from clients."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, on_subscribe, on_goal) -> None:  # noqa: ANN001
+    def __init__(self, loop: asyncio.AbstractEventLoop, on_subscribe, on_goal) -> None:
         self.loop = loop
         self._on_subscribe = on_subscribe
         self._on_goal = on_goal
@@ -106,7 +106,7 @@ async def run(ctx: ServiceContext) -> None:
         log(scan_ch, convert.laser_scan(s), s.stamp)
         log(tf_ch, convert.transforms(s), s.stamp)
 
-    def on_grid(topic: str, channel: Any):  # noqa: ANN202
+    def on_grid(topic: str, channel: Any):
         def handle(g: m.OccupancyGrid) -> None:
             last[topic] = convert.grid(g)
             log(channel, last[topic], g.stamp)
@@ -122,7 +122,7 @@ async def run(ctx: ServiceContext) -> None:
     def on_wheels(w: m.WheelStates) -> None:
         wheels[0] = w
 
-    def on_poses(channel: Any):  # noqa: ANN202
+    def on_poses(channel: Any):
         return lambda p: log(channel, convert.poses(p), p.stamp)
 
     node.subscribe("scan", on_scan)

@@ -222,15 +222,15 @@ def host_name(host_header: str) -> str:
     return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
 
 
-def security_layer(allowed_hosts: list[str]):  # noqa: ANN201 - an ASGI middleware factory
+def security_layer(allowed_hosts: list[str]):  # an ASGI middleware factory
     """ASGI middleware: refuse a Host outside ``allowed_hosts`` (400, DNS rebinding; WebSockets too) and add
     ``SECURITY_HEADERS`` to every HTTP response, error responses and static files included."""
     allowed = {h.lower() for h in allowed_hosts}
     extra = [(k.encode(), v.encode()) for k, v in SECURITY_HEADERS.items()]
     refusal = msgspec.json.encode({"status_code": 400, "detail": "Host header not allowed (hmi_api.allowed_hosts)"})
 
-    def factory(app):  # noqa: ANN001, ANN202
-        async def middleware(scope, receive, send) -> None:  # noqa: ANN001
+    def factory(app):
+        async def middleware(scope, receive, send) -> None:
             if scope["type"] not in ("http", "websocket"):
                 await app(scope, receive, send)
                 return
@@ -247,7 +247,7 @@ def security_layer(allowed_hosts: list[str]):  # noqa: ANN201 - an ASGI middlewa
                 await app(scope, receive, send)
                 return
 
-            async def send_with_headers(message) -> None:  # noqa: ANN001
+            async def send_with_headers(message) -> None:
                 if message["type"] == "http.response.start":
                     names = {k.lower() for k, _ in message.get("headers", [])}
                     message["headers"] = [*message.get("headers", []), *(h for h in extra if h[0] not in names)]
@@ -304,7 +304,7 @@ async def robot_info(request: Request) -> dict:
             "jog_timeout_s": c.jog_timeout_s, "ws_rate_hz": c.ws_rate_hz}
 
 
-def _drive_handler(action: str, summary: str):  # noqa: ANN202 - a Litestar route handler
+def _drive_handler(action: str, summary: str):  # a Litestar route handler
     async def handler(request: Request) -> ActionReply:
         b = _backend(request)
         reply = await (b.estop() if action == "estop" else b.drive(action))
@@ -432,6 +432,7 @@ async def poses_add(request: Request, data: PoseCreate) -> PoseRecord:
         missing = [k for k in ("x", "y", "theta") if getattr(data, k) is None]
         if missing:
             raise ValidationException(f"missing {', '.join(missing)} (or send from_current: true)")
+        assert data.x is not None and data.y is not None and data.theta is not None
         x, y, theta = data.x, data.y, data.theta
     return await b.db_call(b.db.add, data.name, x, y, theta)
 
@@ -583,7 +584,7 @@ async def index() -> Response[bytes]:
     return Response((STATIC_DIR / "index.html").read_bytes(), media_type=MediaType.HTML)
 
 
-def create_asgi_app(backend: Backend):  # noqa: ANN201 - an ASGI application
+def create_asgi_app(backend: Backend):  # an ASGI application
     """The Litestar app inside the security layer (Host allow-list, security headers), which also covers requests
     that match no route."""
     return security_layer(backend.config.host_allow_list())(create_app(backend))

@@ -15,7 +15,7 @@ import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import msgspec
 import zenoh
@@ -239,7 +239,7 @@ class Backend:
         return await self.reply_query("drive/estop")
 
     def jog_command(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
-        twist = self.robot.clamp_twist(vx, vy, wz)
+        twist = self.robot.twist_limits().clamp(vx, vy, wz)
         started = self.jog.command(twist, time.monotonic())
         nav = self.view.nav
         if started and nav is not None and nav.state in ACTIVE_NAV_STATES:
@@ -267,7 +267,7 @@ class Backend:
         return await self.reply_query("localization/initial_pose",
                                       InitialPoseRequest(pose=Pose2D(x=x, y=y, theta=theta)))
 
-    async def mapping_mode(self, mode: str, map_yaml: str = "") -> Reply:
+    async def mapping_mode(self, mode: Literal["mapping", "navigation"], map_yaml: str = "") -> Reply:
         """``localization/mode``: ``mapping`` (a new map) or ``navigation`` on ``map_yaml``."""
         return await self.reply_query("localization/mode", ModeRequest(mode=mode, map_yaml=map_yaml))
 
@@ -294,7 +294,7 @@ class Backend:
         active = self.jog.active(time.monotonic())
         vx, vy, wz = self.jog.current() if active else (0.0, 0.0, 0.0)
         jog = {"active": active, "vx": vx, "vy": vy, "wz": wz}
-        clock = "sim" if getattr(self.node.clock, "is_sim", False) else "wall"
+        clock = "sim" if self.node.clock.is_sim else "wall"
         return self.view.status(self.node.clock.now(), clock, jog, time.monotonic())
 
     def map_png(self) -> bytes | None:

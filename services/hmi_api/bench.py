@@ -59,7 +59,9 @@ def bench_frames() -> list[BenchRow]:
     t_status = time_calls(lambda: msgspec.json.encode(v.status(0.0, "wall", {})), repeat=500)
     t_frame = time_calls(frame, repeat=200)
     size = len(frame())
-    t_png = time_calls(lambda: grid_png(v.grid), repeat=20, warmup=2)
+    grid = v.grid
+    assert grid is not None
+    t_png = time_calls(lambda: grid_png(grid), repeat=20, warmup=2)
     return [
         BenchRow("hmi.status_json_us", float(np.median(t_status) * 1e6), "us", "< 500 us (15 Hz per client)"),
         BenchRow("hmi.ws_full_frame_ms", float(np.median(t_frame) * 1e3), "ms",

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import socket
+from typing import Any
 
 import uvicorn
 
@@ -21,7 +22,7 @@ class _LoopServer(uvicorn.Server):
     """uvicorn on the service's own loop; signals stay with ``service_main`` (which sets ``ctx.stop``)."""
 
     @contextlib.contextmanager
-    def capture_signals(self):  # noqa: ANN201 - uvicorn's contract
+    def capture_signals(self):  # uvicorn's contract
         yield
 
 
@@ -45,7 +46,7 @@ async def run(ctx: ServiceContext) -> None:
     sock = listen_socket(config.host, config.port)  # first: connections queue in the backlog from now on
     backend = Backend(ctx.node, ctx.robot, config)
     app = create_asgi_app(backend)
-    tls = {"ssl_certfile": config.tls_certificate, "ssl_keyfile": config.tls_private_key} \
+    tls: dict[str, Any] = {"ssl_certfile": config.tls_certificate, "ssl_keyfile": config.tls_private_key} \
         if config.tls_certificate else {}
     server = _LoopServer(uvicorn.Config(app, lifespan="off", log_config=None, log_level="warning", access_log=False,
                                         ws="websockets-sansio", ws_ping_interval=None, **tls))

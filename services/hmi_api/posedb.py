@@ -13,14 +13,18 @@ Ordering: ``position`` (integer, ascending); move up/down swaps positions with t
 
 from __future__ import annotations
 
+import builtins
 import contextlib
 import math
 import sqlite3
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import msgspec
+
+from services.common.se2 import wrap_angle
 
 DB_FILE = "poses.sqlite3"
 EXPORT_FORMAT = "zagv-poses"
@@ -72,12 +76,6 @@ class PoseListFull(PoseDbError):
     """The pose list holds ``max_poses`` already."""
 
 
-def normalize_angle(theta: float) -> float:
-    """theta wrapped to (-pi, pi]."""
-    wrapped = math.remainder(theta, 2.0 * math.pi)
-    return math.pi if wrapped == -math.pi else wrapped
-
-
 def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float, float, float]:
     """Validate and normalise a pose; raises PoseDbError naming the bad field."""
     name = name.strip()
@@ -93,7 +91,7 @@ def check_pose(name: str, x: float, y: float, theta: float) -> tuple[str, float,
     for field_name, v in (("x", x), ("y", y)):
         if abs(v) > COORD_LIMIT_M:
             raise PoseDbError(f"{field_name} must be within ±{COORD_LIMIT_M:g} m, got {v}")
-    return name, float(x), float(y), normalize_angle(float(theta))
+    return name, float(x), float(y), wrap_angle(float(theta))
 
 
 def check_id(pose_id: int) -> int:
@@ -180,7 +178,8 @@ class PoseDb:
             cur = db.execute(
                 "INSERT INTO poses (name, x_m, y_m, theta_rad, position, created_at, updated_at) "
                 "VALUES (?, ?, ?, ?, ?, ?, ?)", (name, x, y, theta, position, now, now))
-            new_id = int(cur.lastrowid)
+            assert cur.lastrowid is not None  # an INSERT sets it
+            new_id = cur.lastrowid
         return self.get(new_id)
 
     def update(self, pose_id: int, *, name: str | None = None, x: float | None = None, y: float | None = None,
@@ -202,7 +201,7 @@ class PoseDb:
             if db.execute("DELETE FROM poses WHERE id = ?", (pose_id,)).rowcount == 0:
                 raise PoseNotFound(f"no pose with id {pose_id}")
 
-    def move(self, pose_id: int, direction: str) -> list[PoseRecord]:
+    def move(self, pose_id: int, direction: str) -> builtins.list[PoseRecord]:
         """Swap the pose with its neighbour above ("up", towards the start) or below ("down").
 
         Moving the first pose up or the last one down leaves the order as it is.
@@ -222,16 +221,17 @@ class PoseDb:
                                [(k + 1, pid) for k, pid in enumerate(ordered)])
         return self.list()
 
-    def export(self) -> dict:
+    def export(self) -> dict[str, Any]:
         return {"format": EXPORT_FORMAT, "version": EXPORT_VERSION,
                 "poses": [{"name": p.name, "x": p.x, "y": p.y, "theta": p.theta} for p in self.list()]}
 
-    def import_poses(self, poses: list[tuple[str, float, float, float]], *, replace: bool) -> list[PoseRecord]:
+    def import_poses(self, poses: builtins.list[tuple[str, float, float, float]], *,
+                     replace: bool) -> builtins.list[PoseRecord]:
         """Append ``poses`` (name, x, y, theta) in order, after deleting all poses when ``replace``.
 
         All or nothing: one bad pose rejects the whole import (its index is named).
         """
-        checked = []
+        checked: builtins.list[tuple[str, float, float, float]] = []
         for i, pose in enumerate(poses):
             try:
                 checked.append(check_pose(*pose))

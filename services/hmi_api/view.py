@@ -29,6 +29,7 @@ from proto.messages import (
     Twist2D,
     WheelStates,
 )
+from services.common.se2 import compose, transform_points
 
 
 def finite(v: float, digits: int = 4) -> float | None:
@@ -39,13 +40,6 @@ def finite(v: float, digits: int = 4) -> float | None:
 def std(variance: float) -> float | None:
     """Standard deviation of a variance, or None when it is negative or not finite."""
     return finite(math.sqrt(variance)) if variance >= 0 and math.isfinite(variance) else None
-
-
-def compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """SE(2) composition a ∘ b of (x, y, theta) poses."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], math.atan2(math.sin(a[2] + b[2]),
-                                                                                 math.cos(a[2] + b[2])))
 
 
 def rows(payload: bytes, columns: int) -> np.ndarray:
@@ -120,10 +114,7 @@ class RobotView:
         r = ranges[ok][::step].astype(np.float64)
         a = angles[ok][::step]
         mount = (s.mount.x, s.mount.y, s.mount.theta)
-        x0, y0, th = compose(found[0], mount)
-        c, si = math.cos(th), math.sin(th)
-        lx, ly = r * np.cos(a), r * np.sin(a)
-        pts = np.stack([x0 + c * lx - si * ly, y0 + si * lx + c * ly], axis=1)
+        pts = transform_points(compose(found[0], mount), np.stack([r * np.cos(a), r * np.sin(a)], axis=1))
         return flat(pts)
 
     def particle_list(self, max_points: int) -> list[float | None]:

@@ -127,6 +127,7 @@ class LidarNode:
         self.connects += 1
         self.log.info("connected to LMS111 at %s:%d", cfg.host, cfg.port)
         await self._setup(link)
+        assert self.scanner_config is not None  # _setup read it from the device
         self.log.info("LMS111 streaming %g Hz at %g deg", self.scanner_config.frequency_hz,
                       self.scanner_config.resolution_deg)
         await self._stream(link, stop)
@@ -216,7 +217,7 @@ class LidarNode:
             self.log.warning("dropped bad LMDscandata #%d: %s", self.bad_scans, exc)
 
 
-async def run(ctx) -> None:  # noqa: ANN001 - services.common.service.ServiceContext
+async def run(ctx) -> None:  # services.common.service.ServiceContext
     config: LidarConfig = ctx.config["lidar"]
     lidar = LidarNode(ctx.node, config, config.mount(ctx.robot))
     logging.getLogger("zagv.lidar").info("LMS111 at %s:%d, %g Hz, %g deg", config.host, config.port,

@@ -1,8 +1,12 @@
-"""``python -m services.localization``: the map server + AMCL service."""
+"""``python -m services.localization``: the map server + AMCL service and its SLAM mapping mode.
+
+The service is ``mapping.ModeSwitcher``: it owns the subscriptions and queries and dispatches them to AMCL
+(``node.LocalizationNode``) in navigation mode or to SLAM (``mapping.MappingNode``) in mapping mode.
+"""
 
 from services.common.service import service_main
 from services.localization.config import LocalizationConfig
-from services.localization.node import run
+from services.localization.mapping import run
 
 if __name__ == "__main__":
     service_main("localization", {"localization": LocalizationConfig}, run)

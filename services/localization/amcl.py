@@ -31,6 +31,7 @@ import msgspec
 import numpy as np
 from scipy import ndimage
 
+from services.common.se2 import compose, inverse, wrap_angle
 from services.localization.map_io import FREE, UNKNOWN, OccupancyMap
 
 #: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg
@@ -157,24 +158,6 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             value = getattr(self, name)
             if not ok or not math.isfinite(value):
                 raise ValueError(f"AMCL parameter {name} = {value!r} is out of range")
-
-
-def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
-    """Angle(s) wrapped to [-pi, pi)."""
-    return (np.asarray(a) + math.pi) % (2.0 * math.pi) - math.pi if isinstance(a, np.ndarray) else \
-        (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
-    """SE(2) composition a ∘ b (b expressed in a's frame)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
-
-
-def inverse(a: tuple[float, float, float]) -> tuple[float, float, float]:
-    """SE(2) inverse."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap_angle(-a[2]))
 
 
 def beam_indices(n_ranges: int, max_beams: int) -> np.ndarray:
@@ -514,6 +497,7 @@ class ParticleFilter:
 
     def _likelihood_sums(self, poses: np.ndarray, n: int, out: np.ndarray) -> None:
         """Per-pose sums over the last scan's beams for poses[:n], in chunks of max_particles (buffer size)."""
+        assert self._last_beams is not None
         rc, rs, mount = self._last_beams
         chunk = self.params.max_particles
         for start in range(0, n, chunk):
@@ -794,7 +778,7 @@ class Amcl:
             raise ValueError(f"initial pose {pose} is not finite")
         self.pf.init_gaussian(pose, covariance)
         self._reinitialised()
-        self.last_good = tuple(float(v) for v in pose)
+        self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
     def global_localization(self) -> None:

@@ -13,7 +13,7 @@ from services.localization.amcl import AmclParams, ParticleFilter, beam_indices
 from services.localization.map_io import OccupancyMap
 
 
-def cpu_time_calls(fn, *, repeat: int, warmup: int = 5, max_s: float = 10.0) -> np.ndarray:  # noqa: ANN001
+def cpu_time_calls(fn, *, repeat: int, warmup: int = 5, max_s: float = 10.0) -> np.ndarray:
     """Thread CPU seconds of each call (robust to other processes sharing the cores; the work is single-threaded)."""
     for _ in range(warmup):
         fn()

@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from typing import Literal
 
 from services.localization.amcl import AmclParams
-
-#: module that provides ``async run(ctx)`` for the SLAM mapping mode
-MAPPING_MODULE = "services.localization.mapping"
-
-
-def mapping_available() -> bool:
-    return importlib.util.find_spec(MAPPING_MODULE) is not None
 
 
 class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
@@ -21,7 +13,7 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
 
     - ``map_yaml``: ROS map_server YAML to localize in (and to serve on ``map``).
     - ``state_dir``: folder for the last pose (``localization_pose.json``); empty: nothing is saved.
-    - ``mode``: ``navigation`` (AMCL on ``map_yaml``) or ``mapping`` (SLAM, when that module is present).
+    - ``mode``: ``navigation`` (AMCL on ``map_yaml``) or ``mapping`` (SLAM).
     - initial pose: ``set_initial_pose`` with ``initial_pose_x/_y`` (m), ``initial_pose_yaw`` (rad) and the
       ``initial_cov_xx/_yy`` (m^2), ``initial_cov_aa`` (rad^2) spread; ``initialize_at_saved_pose`` prefers the pose
       saved by a previous run on the same map (written at ``save_pose_rate`` Hz).
@@ -68,8 +60,6 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
 
     def __post_init__(self) -> None:
         self.validate()
-        if self.mode == "mapping" and not mapping_available():
-            raise ValueError("mode 'mapping' is not available in this build (no SLAM module); use 'navigation'")
         for name in ("initial_pose_x", "initial_pose_y", "initial_pose_yaw"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"{name} must be finite")

@@ -199,7 +199,8 @@ def _read_pixels(image_path: Path, yaml_path: Path) -> tuple[np.ndarray, np.ndar
         raise MapError(f"map {yaml_path}: image {image_path} does not exist")
     raw = read_limited(image_path, MAX_IMAGE_BYTES, f"map {yaml_path}: image")
     try:
-        with Image.open(io.BytesIO(raw)) as img:
+        with Image.open(io.BytesIO(raw)) as opened:
+            img: Image.Image = opened
             if img.width * img.height > MAX_IMAGE_CELLS:
                 raise MapError(f"map {yaml_path}: image {image_path} has {img.width} x {img.height} pixels, more "
                                f"than the {MAX_IMAGE_CELLS} allowed")

@@ -23,6 +23,7 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -42,7 +43,8 @@ from proto.messages import (
 from services.common.service import ServiceContext
 from services.localization.config import LocalizationConfig
 from services.localization.map_io import MapError, OccupancyMap, load_map
-from services.localization.node import LocalizationNode, OdomHistory, Outputs
+from services.localization.node import LocalizationNode, Outputs
+from services.localization.odom_history import OdomHistory
 from services.localization.slam.live import LiveMapper
 from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map, write_trajectory
 from services.localization.slam.mapper import SlamConfig, scan_to_points
@@ -265,7 +267,7 @@ class ModeSwitcher:
         if cfg.mode == "mapping":
             self._start_mapping((cfg.initial_pose_x, cfg.initial_pose_y, cfg.initial_pose_yaw))
         else:
-            self.nav = LocalizationNode(ctx, cfg, outputs=self.out, wire=False)
+            self.nav = LocalizationNode(ctx, cfg, outputs=self.out)
         self.node.subscribe("odom", self.on_odom)
         self.node.subscribe("scan", self.on_scan)
         self.node.queryable("localization/initial_pose", self._amcl_query(lambda n, r: n.on_initial_pose(r)))
@@ -324,8 +326,8 @@ class ModeSwitcher:
 
     # ------------------------------------------------------------------ queries
 
-    def _amcl_query(self, call: Callable[[LocalizationNode, object], Reply]) -> Callable[[object], Reply]:
-        def handler(req: object) -> Reply:
+    def _amcl_query(self, call: Callable[[LocalizationNode, Any], Reply]) -> Callable[[Any], Reply]:
+        def handler(req: Any) -> Reply:
             if self.nav is None:
                 return Reply(ok=False, message="localization is mapping; switch to navigation first")
             return call(self.nav, req)
@@ -396,7 +398,7 @@ class ModeSwitcher:
         nav_cfg = msgspec.structs.replace(self.cfg, **changes)
         self.mapping = None
         self.node.extra_stats.pop("mapping", None)
-        self.nav = LocalizationNode(self.ctx, nav_cfg, outputs=self.out, wire=False)
+        self.nav = LocalizationNode(self.ctx, nav_cfg, outputs=self.out)
         where = "" if pose is None else f" from ({pose[0]:.3f}, {pose[1]:.3f}, {pose[2]:.3f})"
         self.log.info("navigation on %s%s", path, where)
         return Reply(ok=True, message=f"navigation on {path}{where}")

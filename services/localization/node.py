@@ -9,15 +9,11 @@ pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial 
 
 from __future__ import annotations
 
-import asyncio
-import bisect
 import collections
-import contextlib
-import json
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -26,6 +22,7 @@ from proto.messages import (
     Empty,
     InitialPoseRequest,
     LaserScan,
+    LocalizationState,
     Odometry,
     Pose2D,
     PoseArray,
@@ -35,54 +32,20 @@ from proto.messages import (
 )
 from services.common.node import Node, TopicPublisher
 from services.common.service import ServiceContext
-from services.localization.amcl import Amcl, select_beams, wrap_angle
-from services.localization.config import MAPPING_MODULE, LocalizationConfig, mapping_available
+from services.localization.amcl import Amcl, select_beams
+from services.localization.config import LocalizationConfig
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
+from services.localization.odom_history import OdomHistory
+from services.localization.pose_store import (
+    POSE_FILE,
+    SavedPoseIgnored,
+    read_saved_pose,
+    should_save,
+    write_pose,
+)
 from services.localization.settle import AtRestSettler
 
-POSE_FILE = "localization_pose.json"
 Pose = tuple[float, float, float]
-
-
-class OdomHistory:
-    """Recent odometry poses by stamp; ``at(t)`` interpolates (x, y linearly, theta along the shorter arc)."""
-
-    def __init__(self, keep_s: float) -> None:
-        self.keep_s = keep_s
-        self.stamps: collections.deque[float] = collections.deque()
-        self.poses: collections.deque[Pose] = collections.deque()
-
-    def add(self, stamp: float, pose: Pose) -> None:
-        if self.stamps and stamp <= self.stamps[-1]:
-            if stamp < self.stamps[-1] - self.keep_s:  # the clock went back (sim restart): start over
-                self.stamps.clear()
-                self.poses.clear()
-            else:
-                return
-        self.stamps.append(stamp)
-        self.poses.append(pose)
-        while self.stamps and self.stamps[0] < stamp - self.keep_s:
-            self.stamps.popleft()
-            self.poses.popleft()
-
-    @property
-    def latest_stamp(self) -> float | None:
-        return self.stamps[-1] if self.stamps else None
-
-    def at(self, t: float, tolerance_s: float) -> Pose | None:
-        """Odom pose at ``t``; None when ``t`` is outside the history by more than ``tolerance_s``."""
-        if not self.stamps:
-            return None
-        if t >= self.stamps[-1]:
-            return self.poses[-1] if t - self.stamps[-1] <= tolerance_s else None
-        if t <= self.stamps[0]:
-            return self.poses[0] if self.stamps[0] - t <= tolerance_s else None
-        i = bisect.bisect_right(self.stamps, t)
-        t0, t1 = self.stamps[i - 1], self.stamps[i]
-        p0, p1 = self.poses[i - 1], self.poses[i]
-        f = (t - t0) / (t1 - t0) if t1 > t0 else 1.0
-        return (p0[0] + f * (p1[0] - p0[0]), p0[1] + f * (p1[1] - p0[1]),
-                float(wrap_angle(p0[2] + f * float(wrap_angle(p1[2] - p0[2])))))
 
 
 def _finite(*values: float) -> bool:
@@ -108,10 +71,9 @@ class Outputs:
 class LocalizationNode:
     """Wires the map and the AMCL core to Zenoh (all callbacks run on the event loop)."""
 
-    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig, *, outputs: Outputs | None = None,
-                 wire: bool = True) -> None:
-        """``outputs``: publishers shared with the mapping mode (made here when None); ``wire``: subscribe to the
-        sensors and serve the queries here (False when a mode switcher dispatches to this node)."""
+    def __init__(self, ctx: ServiceContext, cfg: LocalizationConfig, *, outputs: Outputs | None = None) -> None:
+        """``outputs``: publishers shared with the mapping mode (made here when None). The mode switcher
+        (``mapping.ModeSwitcher``) subscribes to the sensors and serves the queries, and calls ``on_*`` here."""
         self.ctx = ctx
         self.cfg = cfg
         self.node = ctx.node
@@ -122,7 +84,7 @@ class LocalizationNode:
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
         self.last_particles_at = -math.inf
-        self.stats: collections.Counter[str] = collections.Counter()
+        self.stats: dict[str, Any] = collections.Counter()  # counts, and the last verdict and reason
         self.initialised = False
         self.settler = AtRestSettler()
         self._reported_converged = False  # localizing until the estimate settled (no-motion updates at rest)
@@ -132,12 +94,6 @@ class LocalizationNode:
             outputs.map, outputs.pose, outputs.tf, outputs.particles)
         self._load_map()
         self._initialise()
-        if wire:
-            self.node.subscribe("odom", self.on_odom)
-            self.node.subscribe("scan", self.on_scan)
-            self.node.queryable("localization/initial_pose", self.on_initial_pose)
-            self.node.queryable("localization/global", self.on_global)
-            self.node.queryable("localization/nomotion", self.on_nomotion)
         self.node.extra_stats["localization"] = self.stats
 
     # ------------------------------------------------------------------ map and start-up
@@ -197,39 +153,24 @@ class LocalizationNode:
         return "map loaded, filter initialised"
 
     def _read_saved_pose(self) -> tuple[Pose, np.ndarray] | None:
-        if self.pose_file is None or not self.pose_file.is_file():
+        if self.pose_file is None:
             return None
         try:
-            data = json.loads(self.pose_file.read_text())
-            if data.get("map_yaml") != str(Path(self.cfg.map_yaml).resolve()):
-                self.log.info("saved pose in %s belongs to another map; not used", self.pose_file)
-                return None
-            pose = (float(data["x"]), float(data["y"]), float(data["theta"]))
-            cov = np.asarray(data["covariance"], dtype=float).reshape(3, 3)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            self.log.warning("ignoring unreadable saved pose %s: %s", self.pose_file, exc)
+            return read_saved_pose(self.pose_file, self.cfg.map_yaml)
+        except SavedPoseIgnored as exc:
+            self.log.log(exc.level, "%s", exc)
             return None
-        if not _finite(*pose) or not np.all(np.isfinite(cov)):
-            self.log.warning("ignoring non-finite saved pose in %s", self.pose_file)
-            return None
-        # a restart may follow a move by hand: never trust the saved spread below a few centimetres
-        cov = cov + np.diag([0.05 ** 2, 0.05 ** 2, 0.05 ** 2])
-        return pose, cov
 
     def save_pose(self) -> None:
-        """Write the current estimate atomically to the state folder (no-op without one, or while the filter does
-        not trust it: a lost pose must not become the next start's initial pose)."""
-        if self.pose_file is None or self.amcl is None or self.amcl.estimate is None or self.amcl.state != "tracking":
+        """Write the current estimate to the state folder (no-op without one, or while the filter does not trust
+        it: pose_store.py)."""
+        amcl = self.amcl
+        if self.pose_file is None or amcl is None or amcl.estimate is None \
+                or not should_save(amcl.state, amcl.estimate is not None):
             return
-        est = self.amcl.estimate
-        data = {"map_yaml": str(Path(self.cfg.map_yaml).resolve()), "x": est.pose[0], "y": est.pose[1],
-                "theta": est.pose[2], "covariance": est.covariance.reshape(-1).tolist(),
-                "stamp": self.ctx.clock.now()}
         try:
-            self.pose_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.pose_file.with_suffix(".tmp")
-            tmp.write_text(json.dumps(data))
-            os.replace(tmp, self.pose_file)
+            write_pose(self.pose_file, self.cfg.map_yaml, amcl.estimate.pose, amcl.estimate.covariance,
+                       self.ctx.clock.now())
         except OSError as exc:
             self.stats["pose_save_errors"] += 1
             self.log.warning("cannot save the pose to %s: %s", self.pose_file, exc)
@@ -339,7 +280,8 @@ class LocalizationNode:
         state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
         spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
         self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
-                                             covariance=covariance.reshape(-1).tolist(), state=state,
+                                             covariance=covariance.reshape(-1).tolist(),
+                                             state=cast(LocalizationState, state),
                                              match_score=a.match_score, spread_m=spread))
         self.stats["state"] = state
         self.stats["reason"] = a.reason
@@ -418,29 +360,3 @@ class LocalizationNode:
             return Reply(ok=False, message="not localized yet: set an initial pose or start global localization")
         self.amcl.request_nomotion_update()
         return Reply(ok=True, message="the next scan updates the filter without motion")
-
-
-async def run(ctx: ServiceContext) -> None:
-    cfg: LocalizationConfig = ctx.config["localization"]
-    if cfg.mode == "mapping" or mapping_available():  # the mapping module also switches modes at runtime
-        import importlib
-
-        await importlib.import_module(MAPPING_MODULE).run(ctx)
-        return
-    loc = LocalizationNode(ctx, cfg)
-    ctx.node.spawn(ctx.node.ready_when(loc.readiness, ctx.stop))
-    period = 1.0 / cfg.save_pose_rate if cfg.save_pose_rate > 0 else None
-    if period is None:
-        await ctx.stop.wait()
-    else:
-        while not ctx.stop.is_set():
-            stop = asyncio.ensure_future(ctx.stop.wait())
-            sleeper = asyncio.ensure_future(ctx.clock.sleep(period))
-            await asyncio.wait({stop, sleeper}, return_when=asyncio.FIRST_COMPLETED)
-            for task in (stop, sleeper):
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
-            loc.save_pose()
-    loc.save_pose()
-

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.localization.amcl import Amcl, ScanBeams, wrap_angle
+from services.common.se2 import wrap_angle
+from services.localization.amcl import Amcl, ScanBeams
 
 Pose = tuple[float, float, float]
 
@@ -92,6 +93,7 @@ class AtRestSettler:
     def _jitter(self, amcl: Amcl) -> None:
         p = self.params
         pf = amcl.pf
+        assert amcl.estimate is not None
         cov = amcl.estimate.covariance
         spread_m = math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0) / 2.0)
         spread_rad = math.sqrt(max(cov[2, 2], 0.0))

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.localization.amcl import Amcl, AmclParams, compose, select_beams, wrap_angle
+from services.common.se2 import compose, wrap_angle
+from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.map_io import OccupancyMap
 
 #: Table 3 goals joined by via points that keep the straight legs inside free space
@@ -45,7 +46,7 @@ class World:
         f, o = self.free, self.obstacles
         inside_free = ((x >= f[:, 0]) & (x < f[:, 2]) & (y >= f[:, 1]) & (y < f[:, 3])).any(axis=-1)
         inside_obstacle = ((x >= o[:, 0]) & (x < o[:, 2]) & (y >= o[:, 1]) & (y < o[:, 3])).any(axis=-1)
-        return inside_free & ~inside_obstacle
+        return np.asarray(inside_free & ~inside_obstacle)
 
     def render(self) -> OccupancyMap:
         """The world as a grid: cells whose centre is free are 0, the rest 100; origin at the extent's corner."""
@@ -76,10 +77,8 @@ class Laser:
 
     def scan(self, pose: tuple[float, float, float], mount: tuple[float, float, float]) -> np.ndarray:
         """float32 ranges of one scan from the laser at ``pose`` ∘ ``mount``; +inf where nothing is in range."""
-        x, y, th = pose
-        lx = x + math.cos(th) * mount[0] - math.sin(th) * mount[1]
-        ly = y + math.sin(th) * mount[0] + math.cos(th) * mount[1]
-        a = th + mount[2] + self.angles
+        lx, ly, lth = compose(pose, mount)
+        a = lth + self.angles
         dx, dy = np.cos(a)[:, None], np.sin(a)[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
             tx = (self.xs[None, :] - lx) / dx
@@ -100,7 +99,7 @@ def route(poses: list[tuple[float, float, float]], step_m: float = 0.05, step_ra
     """Yield true poses along straight legs between ``poses``; heading turns linearly (shortest way) on each leg."""
     yield poses[0]
     for (x0, y0, t0), (x1, y1, t1) in zip(poses, poses[1:]):
-        dth = (t1 - t0 + math.pi) % (2 * math.pi) - math.pi
+        dth = wrap_angle(t1 - t0)
         steps = max(1, math.ceil(max(math.hypot(x1 - x0, y1 - y0) / step_m, abs(dth) / step_rad)))
         for i in range(1, steps + 1):
             f = i / steps
@@ -127,13 +126,11 @@ class Odometry:
         x1, y1, t1 = true_pose
         c, s = math.cos(t0), math.sin(t0)
         bx, by = c * (x1 - x0) + s * (y1 - y0), -s * (x1 - x0) + c * (y1 - y0)
-        bt = (t1 - t0 + math.pi) % (2 * math.pi) - math.pi
+        bt = wrap_angle(t1 - t0)
         n = self.rng.normal(0.0, self.noise_frac, size=3)
         bx, by = bx * self.scale * (1 + n[0]), by * self.scale * (1 + n[1])
         bt = bt * self.scale * (1 + n[2])
-        ox, oy, ot = self.pose
-        c, s = math.cos(ot), math.sin(ot)
-        self.pose = (ox + c * bx - s * by, oy + s * bx + c * by, ot + bt)
+        self.pose = compose(self.pose, (bx, by, bt))
         self._last_true = true_pose
         return self.pose
 

@@ -29,7 +29,7 @@ from scipy import ndimage
 from services.nav.costmap import INSCRIBED, LETHAL, MAX_NON_OBSTACLE, NO_INFORMATION, Costmap2D
 
 try:
-    from services.nav import _astar
+    import services.nav._astar as _astar
 except ImportError as exc:  # no C compiler at install: the pure-Python loop, same paths, ~15x slower
     _astar = None
     logging.getLogger(__name__).warning("A* runs its pure-Python loop: the compiled search is not built (%s)", exc)

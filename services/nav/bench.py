@@ -26,9 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from services.common.bench import BenchRow, time_calls
+from services.common.robot import TwistLimits
 from services.nav.astar import AStarPlanner
 from services.nav.costmap import Costmap2D, Footprint, GlobalCostmap, InflationLayer, ObstacleLayer, StaticLayer
-from services.nav.dwa import DwaConfig, DwaPlanner, Limits
+from services.nav.dwa import DwaConfig, DwaPlanner
 from services.nav.workloads import Workload, real_map_workload, warehouse_costmap
 
 RESOLUTION = 0.05
@@ -69,6 +70,14 @@ def _plan_ms(planner: AStarPlanner, wl: Workload, repeat: int) -> np.ndarray:
                       max_s=60.0) * 1e3
 
 
+
+def _field(pattern: str, text: str) -> str:
+    """The first group of ``pattern`` (multi-line) in ``text``; ValueError naming the pattern when it is absent."""
+    found = re.search(pattern, text, re.M)
+    if found is None:
+        raise ValueError(f"no line matching {pattern!r} in the C reference's output")
+    return found.group(1)
+
 class CReference:
     """The harness's C A* built in a temporary folder and fed the workload as ``costmap_1000.npy`` + ``meta.txt``."""
 
@@ -87,8 +96,8 @@ class CReference:
         """(median plan time in ms, path cost in cell units) of ``runs`` plans."""
         out = subprocess.run([str(self.exe), str(self.dir), str(runs)], check=True, capture_output=True,
                              text=True).stdout
-        median = float(re.search(r"^TIME astar c (\S+)", out, re.M).group(1))
-        cost = float(re.search(r"^cost (\S+)", (self.dir / "out" / "astar_c.txt").read_text(), re.M).group(1))
+        median = float(_field(r"^TIME astar c (\S+)", out))
+        cost = float(_field(r"^cost (\S+)", (self.dir / "out" / "astar_c.txt").read_text()))
         return median, cost
 
     def close(self) -> None:
@@ -125,7 +134,9 @@ def bench_astar() -> list[BenchRow]:
         ref = CReference(source, wl)
     else:
         print(f"bench astar: no C reference ({source} or gcc missing); astar.c_reference_ms left out", file=sys.stderr)
-    ours, theirs, ref_cost = [], [], None
+    ours: list[float] = []
+    theirs: list[float] = []
+    ref_cost: float | None = None
     try:
         for _ in range(2):  # interleaved, so both see the same machine load
             if ref is not None:
@@ -138,7 +149,7 @@ def bench_astar() -> list[BenchRow]:
     plan_ms = float(np.median(ours))
     rows = [BenchRow("astar.plan_ms", plan_ms, "ms",
                      f"<= 1.5x C -O2; {wl.name} (seed {wl.seed}), {first.expanded} expansions, cost {cells:.6f} cells")]
-    if theirs:
+    if theirs and ref_cost is not None:
         c_ms = float(np.median(theirs))
         rows += [BenchRow("astar.c_reference_ms", c_ms, "ms",
                           f"C -O2 reference, same workload and run; cost {ref_cost:.6f} cells "
@@ -170,7 +181,7 @@ def bench_astar() -> list[BenchRow]:
     code = "import time; t = time.perf_counter(); import services.nav._astar; print((time.perf_counter() - t) * 1e3)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO_ROOT)
     if out.returncode == 0 and planner.uses_compiled:
-        from services.nav import _astar
+        import services.nav._astar as _astar
 
         so = Path(_astar.__file__)
         rows.append(BenchRow("astar.import_ms", float(out.stdout), "ms",
@@ -181,7 +192,7 @@ def bench_astar() -> list[BenchRow]:
 def bench_dwa() -> list[BenchRow]:
     cm = inflated_costmap(100)
     cfg = DwaConfig(vx_samples=20, vy_samples=5, wz_samples=20, sim_time_s=1.7)
-    dwa = DwaPlanner(cfg, Limits(), Footprint(0.63))
+    dwa = DwaPlanner(cfg, TwistLimits(), Footprint(0.63))
     path = np.column_stack([np.linspace(1.0, 4.0, 61), np.full(61, 1.0), np.zeros(61)])
     pose = (1.0, 1.0, 0.0)
     res = dwa.plan(cm.master, pose, (0.1, 0.0, 0.0), path, (4.0, 1.0, 0.0), previous=(0.1, 0.0, 0.0))

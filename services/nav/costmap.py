@@ -130,7 +130,8 @@ class Costmap2D:
         i = np.floor((np.asarray(y) - self.origin_y) / self.resolution).astype(np.int64)
         return i, j
 
-    def map_to_world(self, i: np.ndarray | int, j: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
+    def map_to_world(self, i: np.ndarray | np.integer | int,
+                     j: np.ndarray | np.integer | int) -> tuple[np.ndarray, np.ndarray]:
         """Centre (x, y) in m of cells (i, j)."""
         x = self.origin_x + (np.asarray(j) + 0.5) * self.resolution
         y = self.origin_y + (np.asarray(i) + 0.5) * self.resolution
@@ -286,10 +287,10 @@ class ObstacleLayer:
         self._ensure(master)
         assert self.grid is not None
         rad = footprint.circumscribed_radius_m
-        i0, j0 = master.world_to_map(x - rad, y - rad)
-        i1, j1 = master.world_to_map(x + rad, y + rad)
-        i0, j0 = max(int(i0), 0), max(int(j0), 0)
-        i1, j1 = min(int(i1), master.height - 1), min(int(j1), master.width - 1)
+        i0, j0 = map(int, master.world_to_map(x - rad, y - rad))
+        i1, j1 = map(int, master.world_to_map(x + rad, y + rad))
+        i0, j0 = max(i0, 0), max(j0, 0)
+        i1, j1 = min(i1, master.height - 1), min(j1, master.width - 1)
         if i1 < i0 or j1 < j0:
             return
         ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1]
@@ -487,10 +488,10 @@ class GlobalCostmap(LayeredCostmap):
         x0, y0, x1, y1 = self._dirty
         self._dirty = None
         pad = int(math.ceil(self.inflation.inflation_radius_m / m.resolution)) + 1
-        i0, j0 = m.world_to_map(x0, y0)
-        i1, j1 = m.world_to_map(x1, y1)
-        i0, j0 = max(int(i0) - pad, 0), max(int(j0) - pad, 0)
-        i1, j1 = min(int(i1) + pad + 1, m.height), min(int(j1) + pad + 1, m.width)
+        i0, j0 = map(int, m.world_to_map(x0, y0))
+        i1, j1 = map(int, m.world_to_map(x1, y1))
+        i0, j0 = max(i0 - pad, 0), max(j0 - pad, 0)
+        i1, j1 = min(i1 + pad + 1, m.height), min(j1 + pad + 1, m.width)
         if i1 > i0 and j1 > j0:
             super().update((i0, j0, i1, j1))
 

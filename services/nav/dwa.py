@@ -29,6 +29,8 @@ from dataclasses import dataclass, field
 import msgspec
 import numpy as np
 
+from services.common.robot import TwistLimits
+from services.common.se2 import wrap_angle
 from services.nav.costmap import INSCRIBED, MAX_NON_OBSTACLE, Costmap2D, Footprint
 
 
@@ -49,25 +51,6 @@ class DwaConfig(msgspec.Struct, forbid_unknown_fields=True):
     weight_oscillation: float = 0.05
     goal_heading_activation_m: float = 1.0
     local_path_length_m: float = 1.5
-
-
-def wrap(a: np.ndarray | float) -> np.ndarray | float:
-    """Angle(s) wrapped to (-pi, pi]."""
-    return -((-np.asarray(a) + math.pi) % (2 * math.pi) - math.pi) if isinstance(a, np.ndarray) else \
-        -((-a + math.pi) % (2 * math.pi) - math.pi)
-
-
-@dataclass
-class Limits:
-    """Velocity box (m/s, rad/s) and accelerations (m/s^2, rad/s^2)."""
-
-    vx_min: float = -0.1
-    vx_max: float = 0.2
-    vy_max: float = 0.2
-    wz_max: float = 0.5
-    ax: float = 0.5
-    ay: float = 0.5
-    aw: float = 1.0
 
 
 @dataclass
@@ -96,7 +79,7 @@ def _axis(v: float, lo: float, hi: float, acc: float, dt: float, n: int) -> np.n
 
 
 class DwaPlanner:
-    def __init__(self, config: DwaConfig, limits: Limits, footprint: Footprint) -> None:
+    def __init__(self, config: DwaConfig, limits: TwistLimits, footprint: Footprint) -> None:
         self.config = config
         self.limits = limits
         self.footprint = footprint
@@ -105,9 +88,9 @@ class DwaPlanner:
     def samples(self, current: tuple[float, float, float]) -> np.ndarray:
         """(n, 3) twists in the dynamic window around ``current``."""
         c, lim = self.config, self.limits
-        vx = _axis(current[0], lim.vx_min, lim.vx_max, lim.ax, c.window_dt_s, c.vx_samples)
-        vy = _axis(current[1], -lim.vy_max, lim.vy_max, lim.ay, c.window_dt_s, c.vy_samples)
-        wz = _axis(current[2], -lim.wz_max, lim.wz_max, lim.aw, c.window_dt_s, c.wz_samples)
+        vx = _axis(current[0], lim.vx_min_mps, lim.vx_max_mps, lim.ax_max_mps2, c.window_dt_s, c.vx_samples)
+        vy = _axis(current[1], -lim.vy_max_mps, lim.vy_max_mps, lim.ay_max_mps2, c.window_dt_s, c.vy_samples)
+        wz = _axis(current[2], -lim.wz_max_radps, lim.wz_max_radps, lim.alpha_max_radps2, c.window_dt_s, c.wz_samples)
         g = np.stack(np.meshgrid(vx, vy, wz, indexing="ij"), axis=-1).reshape(-1, 3)
         return g
 
@@ -190,16 +173,16 @@ class DwaPlanner:
         d2 = dx * dx + dy * dy
         nearest = np.argmin(d2, axis=1)
         path_distance = np.sqrt(d2[np.arange(len(end)), nearest])
-        path_alignment = np.abs(wrap(end[:, 2] - local[nearest, 2]))
+        path_alignment = np.abs(wrap_angle(end[:, 2] - local[nearest, 2]))
         # last pose of the path carries the goal heading; its direction of travel is the one before
         if len(local) == len(path) and len(path) > 1:
-            path_alignment = np.where(nearest == len(local) - 1, np.abs(wrap(end[:, 2] - local[-2, 2])),
+            path_alignment = np.where(nearest == len(local) - 1, np.abs(wrap_angle(end[:, 2] - local[-2, 2])),
                                       path_alignment)
         local_goal = local[-1]
         goal_distance = np.hypot(end[:, 0] - local_goal[0], end[:, 1] - local_goal[1])
         to_goal = math.hypot(pose[0] - goal[0], pose[1] - goal[1])
         if to_goal < c.goal_heading_activation_m:
-            goal_heading = np.abs(wrap(end[:, 2] - goal[2]))
+            goal_heading = np.abs(wrap_angle(end[:, 2] - goal[2]))
             path_alignment = path_alignment * (to_goal / c.goal_heading_activation_m)
         else:
             goal_heading = np.zeros(len(end))
@@ -225,5 +208,6 @@ class DwaPlanner:
                                    f"{c.sim_time_s:.1f} s")
         total = np.where(valid, total, np.inf)
         best = int(np.argmin(total))
-        return DwaResult(tuple(float(v) for v in twists[best]), traj[best],
+        vx, vy, wz = (float(v) for v in twists[best])
+        return DwaResult((vx, vy, wz), traj[best],
                          {k: float(v[best]) for k, v in critics.items()}, valid_samples=n_valid)

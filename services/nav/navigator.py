@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 from services.nav.astar import AStarPlanner, PlanResult, cells_to_path, planning_cost, smooth_cells
 from services.nav.config import NavConfig
 from services.nav.costmap import (
@@ -44,7 +45,7 @@ from services.nav.costmap import (
     ScanObservation,
     StaticLayer,
 )
-from services.nav.dwa import DwaPlanner, Limits, wrap
+from services.nav.dwa import DwaPlanner
 
 TERMINAL = ("succeeded", "failed", "canceled")
 #: escapes, in the order tried, when the search failed and when the controller is stuck
@@ -127,7 +128,7 @@ class Navigator:
         self.footprint = Footprint(radius, poly)
         inscribed = self.footprint.inscribed_radius_m
 
-        def costmap_layers(cc):  # noqa: ANN001, ANN202
+        def costmap_layers(cc):
             infl = InflationLayer(inscribed, cc.inflation_radius_m or robot.inflation_radius_m, cc.cost_scaling_factor)
             obs = ObstacleLayer(cc.obstacle_max_range_m, cc.raytrace_max_range_m)
             return StaticLayer(cc.lethal_threshold, cc.track_unknown), obs, infl
@@ -139,8 +140,7 @@ class Navigator:
         self.local_costmap = RollingCostmap(config.local_costmap.size_m, 0.05, ls, lo, li, self.footprint)
         self.has_map = False
         self.planner = AStarPlanner(config.cost_weight, config.allow_unknown)
-        self.limits = Limits(robot.vx_min_mps, robot.vx_max_mps, robot.vy_max_mps, robot.wz_max_radps,
-                             robot.ax_max_mps2, robot.ay_max_mps2, robot.alpha_max_radps2)
+        self.limits = robot.twist_limits()
         self.dwa = DwaPlanner(config.dwa, self.limits, self.footprint)
         self.xy_tol = config.xy_goal_tolerance_m or robot.goal_xy_tolerance_m
         self.yaw_tol = config.yaw_goal_tolerance_rad or robot.goal_yaw_tolerance_rad
@@ -169,7 +169,8 @@ class Navigator:
         if m.resolution != resolution:
             n = int(round(self.config.local_costmap.size_m / resolution))
             self.local_costmap.master = Costmap2D.empty(n, n, resolution)
-            self.local_costmap.obstacles.grid = None
+            if self.local_costmap.obstacles is not None:
+                self.local_costmap.obstacles.grid = None
         self.has_map = True
 
     def add_scan(self, obs: ScanObservation) -> None:
@@ -225,7 +226,8 @@ class Navigator:
         goal_id = goal_id or f"g{next(self._ids)}"
         if self.goal is not None and self.state not in TERMINAL:
             self.finished.append((self.goal.id, "canceled", "preempted by goal " + goal_id))
-        self.goal = GoalState(goal_id, (float(pose[0]), float(pose[1]), float(wrap(pose[2]))), now, next(self._seq))
+        goal_pose = (float(pose[0]), float(pose[1]), float(wrap_angle(pose[2])))
+        self.goal = GoalState(goal_id, goal_pose, now, next(self._seq))
         self.goal.progress_at = now
         self.state = "planning"
         self.error = ""
@@ -324,7 +326,7 @@ class Navigator:
         self.cmd = (0.0, 0.0, 0.0)
         self.local_plan = np.zeros((0, 3))
         if pose is not None and state == "succeeded":
-            ex, ey, eth = pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap(pose[2] - g.pose[2]))
+            ex, ey, eth = pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap_angle(pose[2] - g.pose[2]))
             error = f"estimated error {ex:+.4f} m, {ey:+.4f} m, {eth:+.4f} rad"
             self.finished.append((g.id, state, error))
             error = ""
@@ -334,7 +336,7 @@ class Navigator:
         if s is not None and s.index < len(s.waypoints) and s.waypoints[s.index][0] == g.id and state != "canceled":
             err = [0.0, 0.0, 0.0]
             if pose is not None:
-                err = [pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap(pose[2] - g.pose[2]))]
+                err = [pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap_angle(pose[2] - g.pose[2]))]
             s.results.append({"id": g.id, "reached": state == "succeeded", "skipped": False, "error": err,
                               "time_s": now - g.started_at, "reason": error})
             self._next_waypoint(now)
@@ -408,7 +410,7 @@ class Navigator:
         if math.hypot(g.pose[0] - pose[0], g.pose[1] - pose[1]) < self.config.fine_approach_distance_m:
             return
         heading = self._path_heading(pose)
-        if heading is not None and abs(wrap(heading - pose[2])) > self.config.rotate_first_angle_rad:
+        if heading is not None and abs(wrap_angle(heading - pose[2])) > self.config.rotate_first_angle_rad:
             g.phase = "rotating"
             self._reset_progress(now, pose)
 
@@ -451,13 +453,7 @@ class Navigator:
 
     def _limit(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
         """Clamp to the velocity box and the acceleration limits from the last command (open-loop smoothing)."""
-        vx, vy, wz = self.robot.clamp_twist(vx, vy, wz)
-        px, py, pw = self.cmd
-        dt, lim = self._dt, self.limits
-        vx = min(max(vx, px - lim.ax * dt), px + lim.ax * dt)
-        vy = min(max(vy, py - lim.ay * dt), py + lim.ay * dt)
-        wz = min(max(wz, pw - lim.aw * dt), pw + lim.aw * dt)
-        return vx, vy, wz
+        return self.limits.accelerate(self.cmd, self.limits.clamp(vx, vy, wz), self._dt)
 
     def step(self, now: float, pose: tuple[float, float, float]) -> tuple[float, float, float]:
         """One controller cycle: the twist (vx m/s, vy m/s, wz rad/s, body frame) to command."""
@@ -496,7 +492,7 @@ class Navigator:
         if g.phase == "rotating":
             self.state = "rotating"
             heading = self._path_heading(pose)
-            err = wrap(heading - pose[2]) if heading is not None else 0.0
+            err = wrap_angle(heading - pose[2]) if heading is not None else 0.0
             if abs(err) < self.config.rotate_done_angle_rad:
                 g.phase = "driving"
             else:
@@ -525,7 +521,7 @@ class Navigator:
 
     def _rot_speed(self, err: float, kp: float) -> float:
         """P-control on a heading error with a sqrt(2 alpha |e|) cap so it stops without overshoot."""
-        cap = min(self.limits.wz_max, math.sqrt(2 * self.limits.aw * abs(err) * 0.8))
+        cap = min(self.limits.wz_max_radps, math.sqrt(2 * self.limits.alpha_max_radps2 * abs(err) * 0.8))
         w = max(-cap, min(cap, kp * err))
         if abs(err) > self.config.fine_yaw_target_rad and abs(w) < self.config.fine_min_wz_radps:
             w = math.copysign(self.config.fine_min_wz_radps, err)
@@ -542,7 +538,7 @@ class Navigator:
         assert g is not None and g.fine_since is not None
         cfg = self.config
         ex, ey = g.pose[0] - pose[0], g.pose[1] - pose[1]
-        eth = float(wrap(g.pose[2] - pose[2]))
+        eth = float(wrap_angle(g.pose[2] - pose[2]))
         dxy = math.hypot(ex, ey)
         # success is claimed only with the estimate inside the tolerance itself (no latch at twice the tolerance:
         # a robot judged by where it is must not be called arrived 0.09 m off)
@@ -585,7 +581,7 @@ class Navigator:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         bx, by = c * ex + s * ey, -s * ex + c * ey
         speed = cfg.fine_kp_xy * dxy
-        speed = min(speed, math.sqrt(2 * min(self.limits.ax, self.limits.ay) * dxy * 0.8))
+        speed = min(speed, math.sqrt(2 * min(self.limits.ax_max_mps2, self.limits.ay_max_mps2) * dxy * 0.8))
         if dxy > cfg.fine_xy_target_m * 0.5:
             speed = max(speed, cfg.fine_min_speed_mps)
         else:
@@ -593,12 +589,12 @@ class Navigator:
         vx, vy = (bx / dxy * speed, by / dxy * speed) if dxy > 1e-9 else (0.0, 0.0)
         # uniform scaling into the velocity box keeps the direction
         scale = 1.0
-        if vx > self.limits.vx_max:
-            scale = min(scale, self.limits.vx_max / vx)
-        if vx < self.limits.vx_min:
-            scale = min(scale, self.limits.vx_min / vx)
-        if abs(vy) > self.limits.vy_max:
-            scale = min(scale, self.limits.vy_max / abs(vy))
+        if vx > self.limits.vx_max_mps:
+            scale = min(scale, self.limits.vx_max_mps / vx)
+        if vx < self.limits.vx_min_mps:
+            scale = min(scale, self.limits.vx_min_mps / vx)
+        if abs(vy) > self.limits.vy_max_mps:
+            scale = min(scale, self.limits.vy_max_mps / abs(vy))
         vx, vy = vx * scale, vy * scale
         w = self._rot_speed(eth, cfg.fine_kp_yaw) if abs(eth) > cfg.fine_yaw_target_rad * 0.5 else 0.0
         return vx, vy, w
@@ -611,7 +607,7 @@ class Navigator:
             return
         p = g.progress_pose
         if (math.hypot(pose[0] - p[0], pose[1] - p[1]) > self.config.required_movement_radius_m
-                or abs(wrap(pose[2] - p[2])) > self.config.required_movement_angle_rad):
+                or abs(wrap_angle(pose[2] - p[2])) > self.config.required_movement_angle_rad):
             self._reset_progress(now, pose)
         elif now - g.progress_at > self.config.movement_time_allowance_s:
             self._start_recovery(now, pose, f"no progress: moved less than {self.config.required_movement_radius_m} m"
@@ -673,7 +669,7 @@ class Navigator:
             self._end_recovery(now, pose)
             return (0.0, 0.0, 0.0)
         if g.recovery == "spin":
-            g.recovery_turned += abs(float(wrap(pose[2] - g.recovery_last_theta)))
+            g.recovery_turned += abs(float(wrap_angle(pose[2] - g.recovery_last_theta)))
             g.recovery_last_theta = pose[2]
             left = self.config.spin_angle_rad - g.recovery_turned
             if left <= 0.02:
@@ -690,7 +686,7 @@ class Navigator:
         if int(self.local_costmap.master.cost_at(back[0], back[1], outside=0)) >= INSCRIBED:
             self._end_recovery(now, pose)
             return (0.0, 0.0, 0.0)
-        return (-min(self.config.backup_speed_mps, -self.limits.vx_min), 0.0, 0.0)
+        return (-min(self.config.backup_speed_mps, -self.limits.vx_min_mps), 0.0, 0.0)
 
     # ------------------------------------------------------------------ status
 

@@ -13,7 +13,7 @@ import collections
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import msgspec
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -22,7 +22,7 @@ from rosbags.typesys.store import Typestore
 from proto import messages as m
 from services.recorder.rosconv import ZAGV_MESSAGE_TYPE, RosEncoder, make_typestore
 
-ROSBAG2_VERSION = 8
+ROSBAG2_VERSION: Literal[8, 9] = 8
 
 
 @dataclass

@@ -13,6 +13,7 @@ import asyncio
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 import zenoh
 
@@ -24,88 +25,108 @@ from services.recorder.blackbox import RingBuffer, Triggers, bag_name, save
 from services.recorder.config import RecorderConfig
 
 
-async def run(ctx: ServiceContext) -> None:
-    cfg: RecorderConfig = ctx.config["recorder"]
-    node = ctx.node
-    clock = node.clock
-    folder = Path(cfg.directory()).expanduser()
-    ring = RingBuffer(cfg.window_s)
-    triggers = Triggers()
-    last_save_s = -float("inf")
-    saving: set[str] = set()
-    excluded = set(cfg.exclude)
+class BlackBox:
+    """The black box: a ring buffer of every topic, saved as a bag on a trigger or on request."""
 
-    def on_sample(sample: zenoh.Sample) -> None:
+    def __init__(self, ctx: ServiceContext) -> None:
+        self.ctx = ctx
+        self.cfg: RecorderConfig = ctx.config["recorder"]
+        self.node = ctx.node
+        self.clock = ctx.node.clock
+        self.folder = Path(self.cfg.directory()).expanduser()
+        self.ring = RingBuffer(self.cfg.window_s)
+        self.triggers = Triggers()
+        self.last_save_s = -float("inf")
+        self.saving: set[str] = set()
+        self.excluded = set(self.cfg.exclude)
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
         try:
             _, name = split_key(str(sample.key_expr))
         except ValueError:
             return
-        if name in TOPICS and name not in excluded:
-            ring.add(name, sample.payload.to_bytes(), int(round(clock.now() * 1e9)))
+        if name in TOPICS and name not in self.excluded:
+            self.ring.add(name, sample.payload.to_bytes(), int(round(self.clock.now() * 1e9)))
 
-    async def save_now(reason: str, *, on_demand: bool = False) -> Path | None:
-        nonlocal last_save_s
-        if not cfg.blackbox:
-            return None
+    def may_save(self, reason: str, now: float, on_demand: bool) -> bool:
+        """A trigger saves at most once per ``cooldown_s`` and not while the same reason is being saved;
+        a request always saves."""
+        if not self.cfg.blackbox:
+            return False
+        return on_demand or not (now - self.last_save_s < self.cfg.cooldown_s or reason in self.saving)
+
+    async def save_now(self, reason: str, *, on_demand: bool = False) -> Path | None:
+        cfg, clock = self.cfg, self.clock
         now = clock.now()
-        if not on_demand and (now - last_save_s < cfg.cooldown_s or reason in saving):
+        if not self.may_save(reason, now, on_demand):
             return None
-        last_save_s = now
-        saving.add(reason)
+        self.last_save_s = now
+        self.saving.add(reason)
         try:
             if not on_demand and cfg.post_trigger_s > 0:
                 await clock.sleep(cfg.post_trigger_s)
-                if ctx.stop.is_set():  # the stack is stopping: health tokens going away are not crashes
+                if self.ctx.stop.is_set():  # the stack is stopping: health tokens going away are not crashes
                     return None
-            items = ring.snapshot()
-            folder.mkdir(parents=True, exist_ok=True)
-            out = folder / bag_name(time.strftime("%Y%m%d_%H%M%S"), reason)
+            items = self.ring.snapshot()
+            self.folder.mkdir(parents=True, exist_ok=True)
+            out = self.folder / bag_name(time.strftime("%Y%m%d_%H%M%S"), reason)
             n = 2
             while out.exists():
                 out = out.with_name(f"{out.name.rsplit('~', 1)[0]}~{n}")
                 n += 1
-            path, count = await asyncio.to_thread(save, items, out, node.keys.robot_id)
+            path, count = await asyncio.to_thread(save, items, out, self.node.keys.robot_id)
             span = (items[-1][0] - items[0][0]) / 1e9 if items else 0.0
-            node.log.info("black box saved: %s (%s, %d messages, %.1f s)", path, reason, count, span)
-            _prune(folder, cfg.max_saved)
+            self.node.log.info("black box saved: %s (%s, %d messages, %.1f s)", path, reason, count, span)
+            _prune(self.folder, cfg.max_saved)
             return path
         finally:
-            saving.discard(reason)
+            self.saving.discard(reason)
 
-    def trigger(reason: str | None) -> None:
+    def trigger(self, reason: str | None) -> None:
         if reason:
-            node.log.warning("black box trigger: %s", reason)
-            node.spawn(save_now(reason))
+            self.node.log.warning("black box trigger: %s", reason)
+            self.node.spawn(self.save_now(reason))
 
-    def on_health(sample: zenoh.Sample) -> None:
+    def on_health(self, sample: zenoh.Sample) -> None:
         service = str(sample.key_expr).rsplit("/", 1)[-1]
-        if sample.kind == zenoh.SampleKind.DELETE and service != node.name and not ctx.stop.is_set():
-            node.loop.call_soon_threadsafe(trigger, f"crash-{service}")
+        if sample.kind == zenoh.SampleKind.DELETE and service != self.node.name and not self.ctx.stop.is_set():
+            self.node.loop.call_soon_threadsafe(self.trigger, f"crash-{service}")
 
-    async def on_save(req: BlackBoxSaveRequest) -> Reply:
-        if not cfg.blackbox:
+    async def on_save(self, req: BlackBoxSaveRequest) -> Reply:
+        if not self.cfg.blackbox:
             return Reply(ok=False, message="the black box is off ([recorder] blackbox = false)")
-        path = await save_now(req.reason or "on-demand", on_demand=True)
+        path = await self.save_now(req.reason or "on-demand", on_demand=True)
         return Reply(ok=path is not None, message=str(path) if path else "nothing saved")
 
-    subs = []
-    if cfg.blackbox:
-        subs.append(node.session.declare_subscriber(node.keys.everything, on_sample))
-        node.session.get(node.keys("map"), lambda r: r.ok is not None and on_sample(r.ok), timeout=2.0)
-        node.subscribe("wheels", lambda w: trigger(triggers.on_wheels(w)), msg_type=WheelStates)
-        node.subscribe("nav/status", lambda s: trigger(triggers.on_nav_status(s)), msg_type=NavStatus)
-        if cfg.save_on_crash:
-            subs.append(node.session.liveliness().declare_subscriber(node.keys.health_all, on_health))
-    node.queryable("recorder/save", on_save)
-    node.extra_stats.update(blackbox_dir=str(folder), window_s=cfg.window_s)
-    node.ready("subscribed to every topic; recorder/save answered" if cfg.blackbox else "black box off")
+    def wire(self) -> list[Any]:
+        """Subscribe to every topic (and to the health tokens for crashes) and answer recorder/save; the
+        Zenoh subscribers to undeclare at the end."""
+        node, cfg = self.node, self.cfg
+        subs: list[Any] = []
+        if cfg.blackbox:
+            subs.append(node.session.declare_subscriber(node.keys.everything, self.on_sample))
+            node.session.get(node.keys("map"), lambda r: self.on_sample(r.ok) if r.ok is not None else None,
+                             timeout=2.0)
+            node.subscribe("wheels", lambda w: self.trigger(self.triggers.on_wheels(w)), msg_type=WheelStates)
+            node.subscribe("nav/status", lambda s: self.trigger(self.triggers.on_nav_status(s)), msg_type=NavStatus)
+            if cfg.save_on_crash:
+                subs.append(node.session.liveliness().declare_subscriber(node.keys.health_all, self.on_health))
+        node.queryable("recorder/save", self.on_save)
+        return subs
 
-    async def report() -> None:
+    async def report(self) -> None:
         while True:
-            node.extra_stats.update(buffered_messages=len(ring), buffered_mb=round(ring.bytes / 1e6, 2))
+            self.node.extra_stats.update(buffered_messages=len(self.ring), buffered_mb=round(self.ring.bytes / 1e6, 2))
             await asyncio.sleep(1.0)
 
-    node.spawn(report())
+
+async def run(ctx: ServiceContext) -> None:
+    box = BlackBox(ctx)
+    node = ctx.node
+    subs = box.wire()
+    node.extra_stats.update(blackbox_dir=str(box.folder), window_s=box.cfg.window_s)
+    node.ready("subscribed to every topic; recorder/save answered" if box.cfg.blackbox else "black box off")
+    node.spawn(box.report())
     try:
         await ctx.stop.wait()
     finally:

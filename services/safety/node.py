@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+from typing import cast
 
 from proto import array
 from proto import messages as m
@@ -89,7 +90,7 @@ class SafetyNode:
             return
         self.last_action, self.last_state_at = verdict.action, now
         vx, vy, wz = verdict.twist
-        self.pub_state.put(m.SafetyState(stamp=now, action=verdict.action, scale=verdict.scale,
+        self.pub_state.put(m.SafetyState(stamp=now, action=cast(m.SafetyAction, verdict.action), scale=verdict.scale,
                                          nearest_m=verdict.nearest_m, reason=verdict.reason, requested=cmd,
                                          commanded=m.Twist2D(vx=vx, vy=vy, wz=wz, stamp=cmd.stamp),
                                          interventions=self.interventions))

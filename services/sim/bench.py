@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.bench import BenchRow
+from services.common.ports import free_port
 from services.common.robot import RobotSpec
 from services.sim.config import SimConfig
 from services.sim.simulation import Simulation
@@ -33,7 +34,7 @@ POSES = [(0.0, 0.0, 0.0), (3.0, 3.2, 0.0), (10.0, 3.2, 0.0), (15.0, 3.0, math.pi
          (23.5, 12.0, 1.57), (26.8, 6.6, 1.0), (13.6, 3.2, -1.0)]
 
 
-def cpu_time_calls(fn, *, repeat: int = 200, warmup: int = 5, max_s: float = 5.0) -> np.ndarray:  # noqa: ANN001
+def cpu_time_calls(fn, *, repeat: int = 200, warmup: int = 5, max_s: float = 5.0) -> np.ndarray:
     """CPU time (s) of this thread for each call of ``fn``: robust to other processes competing for the cores."""
     for _ in range(warmup):
         fn()
@@ -89,14 +90,6 @@ def step_rows() -> list[BenchRow]:
             BenchRow("sim.core_speed_factor", 1.0 / per_sim_second, "x", ">= 5 (physics + 50 Hz scans)")]
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def service_rows(seconds: float = 6.0) -> list[BenchRow]:
     from proto import codec
     from proto.keys import Keys
@@ -104,7 +97,7 @@ def service_rows(seconds: float = 6.0) -> list[BenchRow]:
     from services.common.session import open_session
     from services.common.settings import ZenohSettings
 
-    zenoh_port, can_port, lidar_port = _free_port(), _free_port(), _free_port()
+    zenoh_port, can_port, lidar_port = free_port(), free_port(), free_port()
     run_dir = tempfile.mkdtemp(prefix="zagv-bench-sim-")
     argv = [sys.executable, "-m", "services.cli", "up", "--sim", "--only", "sim", "--headless", "--speed", "0",
             "--zenoh-port", str(zenoh_port), "--can-port", str(can_port), "--lidar-port", str(lidar_port),

@@ -24,7 +24,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import os
 import select
 import time
@@ -38,19 +37,15 @@ from proto.messages import Clock, GroundTruth, ObstacleReply, ObstacleRequest, P
 from services.common.clock import SimClock
 from services.common.service import ServiceContext
 from services.sim.config import SimConfig
+from services.sim.lms111 import Lms111Emulator
+from services.sim.pacing import Pacer
 from services.sim.simulation import Simulation
-from services.sim.world import WorldError, load_world
-
-try:  # the emulated LMS111 lives in its own module; the sim runs without it
-    from services.sim.lms111 import Lms111Emulator
-except ImportError:  # pragma: no cover - depends on the checkout
-    Lms111Emulator = None
+from services.sim.world import World, WorldError, load_world
 
 __all__ = ["SimConfig", "run"]
 
 log = logging.getLogger("zagv.sim")
 
-MIN_SLEEP_WALL_S = 0.002
 
 
 class CanLink:
@@ -225,6 +220,123 @@ class ImuPty:
                 os.close(fd)
 
 
+def teleport_reply(sim: Simulation, req: TeleportRequest) -> Reply:
+    """``sim/teleport``: move the robot (clears the collision latch); non-finite poses are refused."""
+    p = req.pose
+    if not sim.teleport(p.x, p.y, p.theta):
+        return Reply(ok=False, message=f"teleport: pose must be finite, got ({p.x}, {p.y}, {p.theta})")
+    note = " (in collision: the robot cannot move deeper)" if sim.robot.collided else ""
+    return Reply(ok=True, message=f"robot at ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
+
+
+def obstacles_reply(world: World, req: ObstacleRequest) -> ObstacleReply:
+    """``sim/obstacles``: add (by id, with a rectangle or the world's own), remove one, or clear all."""
+    try:
+        if req.action == "add":
+            if not req.id:
+                return ObstacleReply(ok=False, message="add: an id is required", ids=world.active_obstacle_ids())
+            world.set_obstacle(req.id, req.rect or None)
+            msg = f"obstacle {req.id} active"
+        elif req.action == "remove":
+            world.remove_obstacle(req.id)
+            msg = f"obstacle {req.id} removed"
+        else:
+            world.clear_obstacles()
+            msg = "all dynamic obstacles removed"
+    except WorldError as exc:
+        return ObstacleReply(ok=False, message=str(exc), ids=world.active_obstacle_ids())
+    log.info("%s", msg)
+    return ObstacleReply(ok=True, message=msg, ids=world.active_obstacle_ids())
+
+
+class SimService:
+    """The simulator's devices (CAN nodes, LMS111, Razor IMU) and topics around a Simulation."""
+
+    def __init__(self, ctx: ServiceContext, sim: Simulation, world: World) -> None:
+        cfg: SimConfig = ctx.config["sim"]
+        self.ctx, self.cfg, self.node, self.sim, self.world = ctx, cfg, ctx.node, sim, world
+        self.clock = SimClock()
+        self.clock.advance(0.0, cfg.speed_factor)
+        self.node.clock = self.clock  # stats report sim time; this service never follows the clock topic
+        # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same
+        self.clock_pub = self.node.publisher("clock")
+        self.truth_pub = self.node.publisher("sim/ground_truth")
+        self.node.queryable("sim/teleport", lambda req: teleport_reply(sim, req))
+        self.node.queryable("sim/obstacles", lambda req: obstacles_reply(world, req))
+        self.link = CanLink(sim, cfg.can_interface, cfg.can_channel)
+        self.imu: ImuPty | None = None
+        self.lidar: Lms111Emulator | None = None
+        self.clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
+        self.truth_every = max(1, round(1.0 / cfg.ground_truth_hz / cfg.step_s))
+        self.imu_every = max(1, round(1.0 / cfg.imu_rate_hz / cfg.step_s))
+        self.stats: dict[str, float] = {"speed_factor": 0.0, "behind": 0}
+        self.node.extra_stats["sim"] = self.stats
+
+    async def start_devices(self) -> None:
+        cfg, node = self.cfg, self.node
+        if cfg.imu_link:
+            try:
+                self.imu = ImuPty(self.sim, cfg.imu_link)
+            except OSError as exc:
+                node.log.error("Razor IMU disabled: cannot create %s: %s", cfg.imu_link, exc)
+        try:
+            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
+            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, self.sim.scan_source, self.clock,
+                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
+                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
+            await lidar.start()
+            self.lidar = lidar
+        except (OSError, ValueError, TypeError) as exc:
+            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
+
+    def publish_step(self, achieved: float) -> None:
+        """After step k: the clock every ``clock_every`` steps (and the world's obstacle schedule), the ground
+        truth every ``truth_every``, the IMU every ``imu_every``."""
+        sim, k = self.sim, self.sim.steps
+        self.clock.advance(sim.now_s, achieved)
+        if k % self.clock_every == 0:
+            self.clock_pub.put(Clock(stamp=sim.now_s, speed_factor=achieved))
+            if self.world.dynamic:
+                self.world.apply_schedule(sim.now_s)
+        if k % self.truth_every == 0:
+            r = sim.robot
+            self.truth_pub.put(GroundTruth(stamp=sim.now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
+                                           twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=sim.now_s),
+                                           collided=r.collided))
+        if self.imu is not None and k % self.imu_every == 0:
+            self.imu.tick()
+
+    async def run(self) -> None:
+        sim, link = self.sim, self.link
+        # wall time below is the sim's own pacing reference (it is the clock master), not robot timing
+        pacer = Pacer(self.cfg.speed_factor, time.monotonic(), sim.now_s)
+        next_connect = 0.0
+        while not self.ctx.stop.is_set():
+            now_wall = time.monotonic()
+            if link.bus is None and now_wall >= next_connect:
+                if link.connect():
+                    link.send(sim.boot())  # power-on (again after a lost bus): boot-up messages
+                else:
+                    next_connect = now_wall + 0.5
+            wait = pacer.wait_s(now_wall, sim.now_s, sim.dt, sim.steps)
+            if wait is not None:
+                await asyncio.sleep(wait)
+            link.poll()
+            link.send(sim.step())
+            self.publish_step(pacer.achieved)
+            if pacer.measure(now_wall, sim.now_s):
+                self.stats.update(speed_factor=round(pacer.achieved, 3), behind=pacer.behind, can_rx=link.rx,
+                                  can_tx=link.tx, sim_s=round(sim.now_s, 3))
+
+    async def close(self) -> None:
+        if self.lidar is not None:
+            with contextlib.suppress(Exception):
+                await self.lidar.stop()
+        if self.imu is not None:
+            self.imu.close()
+        self.link.close()
+
+
 async def run(ctx: ServiceContext) -> None:
     cfg: SimConfig = ctx.config["sim"]
     node = ctx.node
@@ -237,120 +349,10 @@ async def run(ctx: ServiceContext) -> None:
     node.log.info("world %s (%dx%d cells at %.3f m), robot at (%.2f, %.2f, %.2f)%s", world.name, world.shape[1],
                   world.shape[0], world.resolution_m, sim.robot.x, sim.robot.y, sim.robot.theta,
                   " IN COLLISION" if sim.robot.collided else "")
-    clock = SimClock()
-    clock.advance(0.0, cfg.speed_factor)
-    node.clock = clock  # stats report sim time; this service never follows the clock topic
-    # not express: Zenoh batches it, ~2 us per put instead of ~30-40 us, and loopback latency is the same (~0.15 ms)
-    clock_pub = node.publisher("clock")
-    truth_pub = node.publisher("sim/ground_truth")
-
-    def teleport(req: TeleportRequest) -> Reply:
-        p = req.pose
-        if not sim.teleport(p.x, p.y, p.theta):
-            return Reply(ok=False, message=f"teleport: pose must be finite, got ({p.x}, {p.y}, {p.theta})")
-        note = " (in collision: the robot cannot move deeper)" if sim.robot.collided else ""
-        return Reply(ok=True, message=f"robot at ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
-
-    def obstacles(req: ObstacleRequest) -> ObstacleReply:
-        try:
-            if req.action == "add":
-                if not req.id:
-                    return ObstacleReply(ok=False, message="add: an id is required", ids=world.active_obstacle_ids())
-                world.set_obstacle(req.id, req.rect or None)
-                msg = f"obstacle {req.id} active"
-            elif req.action == "remove":
-                world.remove_obstacle(req.id)
-                msg = f"obstacle {req.id} removed"
-            else:
-                world.clear_obstacles()
-                msg = "all dynamic obstacles removed"
-        except WorldError as exc:
-            return ObstacleReply(ok=False, message=str(exc), ids=world.active_obstacle_ids())
-        node.log.info("%s", msg)
-        return ObstacleReply(ok=True, message=msg, ids=world.active_obstacle_ids())
-
-    node.queryable("sim/teleport", teleport)
-    node.queryable("sim/obstacles", obstacles)
-
-    link = CanLink(sim, cfg.can_interface, cfg.can_channel)
-    imu = None
-    if cfg.imu_link:
-        try:
-            imu = ImuPty(sim, cfg.imu_link)
-        except OSError as exc:
-            node.log.error("Razor IMU disabled: cannot create %s: %s", cfg.imu_link, exc)
-    lidar = None
-    if Lms111Emulator is None:
-        node.log.warning("LMS111 emulator unavailable (services.sim.lms111 missing): no laser scanner")
-    else:
-        try:
-            # range noise is added once, by the scan source (sim.laser_noise_m); the emulator adds none
-            lidar = Lms111Emulator(cfg.lidar_host, cfg.lidar_port, sim.scan_source, clock,
-                                   frequency_hz=cfg.lidar_frequency_hz, resolution_deg=cfg.lidar_resolution_deg,
-                                   range_noise_m=0.0, max_range_m=cfg.laser_max_range_m)
-            await lidar.start()
-        except (OSError, ValueError, TypeError) as exc:
-            node.log.error("LMS111 emulator not started on %s:%d: %s", cfg.lidar_host, cfg.lidar_port, exc)
-            lidar = None
-
+    service = SimService(ctx, sim, world)
+    await service.start_devices()
     node.ready("world loaded, CAN bus and LMS111 emulation up")
-    clock_every = max(1, round(cfg.clock_period_s / cfg.step_s))
-    truth_every = max(1, round(1.0 / cfg.ground_truth_hz / cfg.step_s))
-    imu_every = max(1, round(1.0 / cfg.imu_rate_hz / cfg.step_s))
-    free_run = not (cfg.speed_factor > 0 and math.isfinite(cfg.speed_factor))
-    stats = {"speed_factor": 0.0, "behind": 0}
-    node.extra_stats["sim"] = stats
-    # wall time below is the sim's own pacing reference (it is the clock master), not robot timing
-    wall0 = time.monotonic()
-    sim0 = sim.now_s
-    meas_wall, meas_sim = wall0, sim.now_s
-    achieved = cfg.speed_factor if not free_run else 1.0  # replaced by the measured factor after a second
-    next_connect = 0.0
     try:
-        while not ctx.stop.is_set():
-            now_wall = time.monotonic()
-            if link.bus is None and now_wall >= next_connect:
-                if link.connect():
-                    link.send(sim.boot())  # power-on (again after a lost bus): boot-up messages
-                else:
-                    next_connect = now_wall + 0.5
-            if free_run:
-                await asyncio.sleep(0)
-            else:
-                due = wall0 + (sim.now_s + sim.dt - sim0) / cfg.speed_factor
-                delay = due - now_wall
-                if delay > 0.0:
-                    # wake at most every 2 ms of wall time and catch up in a burst: fewer wake-ups at high factors
-                    await asyncio.sleep(max(delay, MIN_SLEEP_WALL_S))
-                elif delay < -0.25:  # cannot keep up: re-anchor rather than burst
-                    stats["behind"] += 1
-                    wall0, sim0 = now_wall, sim.now_s
-                elif sim.steps % 4 == 0:
-                    await asyncio.sleep(0)
-            link.poll()
-            link.send(sim.step())
-            k = sim.steps
-            clock.advance(sim.now_s, achieved)
-            if k % clock_every == 0:
-                clock_pub.put(Clock(stamp=sim.now_s, speed_factor=achieved))
-                if world.dynamic:
-                    world.apply_schedule(sim.now_s)
-            if k % truth_every == 0:
-                r = sim.robot
-                truth_pub.put(GroundTruth(stamp=sim.now_s, pose=Pose2D(x=r.x, y=r.y, theta=r.theta),
-                                          twist=Twist2D(vx=r.vx, vy=r.vy, wz=r.wz, stamp=sim.now_s),
-                                          collided=r.collided))
-            if imu is not None and k % imu_every == 0:
-                imu.tick()
-            if now_wall - meas_wall >= 1.0:
-                achieved = (sim.now_s - meas_sim) / (now_wall - meas_wall)
-                stats["speed_factor"] = round(achieved, 3)
-                stats.update(can_rx=link.rx, can_tx=link.tx, sim_s=round(sim.now_s, 3))
-                meas_wall, meas_sim = now_wall, sim.now_s
+        await service.run()
     finally:
-        if lidar is not None:
-            with contextlib.suppress(Exception):
-                await lidar.stop()
-        if imu is not None:
-            imu.close()
-        link.close()
+        await service.close()

@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from services.common.se2 import wrap_angle
+
 G = 9.806
 
 
@@ -38,7 +40,7 @@ class RazorImu:
         """Advance the yaw by the measured rate over ``dt_s``."""
         self.rate_radps = true_wz_radps + self.bias + (self.noise * float(self._rng.standard_normal())
                                                        if self.noise else 0.0)
-        self.yaw_rad = (self.yaw_rad + self.rate_radps * dt_s + math.pi) % (2 * math.pi) - math.pi
+        self.yaw_rad = wrap_angle(self.yaw_rad + self.rate_radps * dt_s)
 
     def feed(self, data: bytes) -> bytes:
         """Parse command bytes from the host; returns immediate replies (``#s`` sync answers)."""

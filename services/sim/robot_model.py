@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common.se2 import compose, wrap_angle
+
 TWO_PI = 2.0 * math.pi
 
 
@@ -185,10 +187,7 @@ def integrate_se2(x: float, y: float, th: float, vx: float, vy: float, wz: float
         s, c = math.sin(dth) / dth, (1.0 - math.cos(dth)) / dth
     dx = (s * vx - c * vy) * dt
     dy = (c * vx + s * vy) * dt
-    ct, st = math.cos(th), math.sin(th)
-    th_new = th + dth
-    th_new = (th_new + math.pi) % TWO_PI - math.pi
-    return x + ct * dx - st * dy, y + st * dx + ct * dy, th_new
+    return compose((x, y, th), (dx, dy, dth))
 
 
 @dataclass
@@ -242,7 +241,7 @@ class SwerveRobot:
         self.margin = lambda x, y: math.inf
 
     def teleport(self, x: float, y: float, theta: float) -> None:
-        self.x, self.y, self.theta = x, y, (theta + math.pi) % TWO_PI - math.pi
+        self.x, self.y, self.theta = x, y, wrap_angle(theta)
         self.vx = self.vy = self.wz = 0.0
         self.collided = False
 

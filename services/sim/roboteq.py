@@ -93,6 +93,7 @@ The watchdog keeps running in every NMT state.
 from __future__ import annotations
 
 import contextlib
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -210,7 +211,7 @@ class RoboteqNode:
 
     def _build_od(self) -> None:
         """(index, sub) -> (type, getter or None, setter or None)."""
-        od: dict[tuple[int, int], tuple[str, Callable[[], int] | None, Callable[[int], None] | None]] = {}
+        od: dict[tuple[int, int], tuple[str, Callable[[], int | None] | None, Callable[..., None] | None]] = {}
         t, st = self.traction, self.steer
 
         def cmd(index: int, sub: int, typ: str, apply: Callable[[int], None]) -> None:
@@ -218,7 +219,7 @@ class RoboteqNode:
                 self.commands[key] = v
                 apply(v)
 
-            od[(index, sub)] = (typ, lambda key=(index, sub): self.commands.get(key, 0), setter)
+            od[(index, sub)] = (typ, functools.partial(self.commands.get, (index, sub), 0), setter)
 
         # commands
         cmd(0x2000, 1, "S32", self._go_traction)
@@ -238,9 +239,9 @@ class RoboteqNode:
         cmd(0x200E, 0, "U8", self._motor_stop)
         cmd(0x2017, 0, "U8", lambda v: None)
         for k in range(1, 17):
-            od[(0x2005, k)] = ("S32", lambda k=k: self.user_vars.get(k, 0),
-                               lambda v, k=k: self.user_vars.__setitem__(k, v))
-            od[(0x2106, k)] = ("S32", lambda k=k: self.user_vars.get(k, 0), None)
+            od[(0x2005, k)] = ("S32", functools.partial(self.user_vars.get, k, 0),
+                               functools.partial(self.user_vars.__setitem__, k))
+            od[(0x2106, k)] = ("S32", functools.partial(self.user_vars.get, k, 0), None)
         # queries
         od[(0x2100, 1)] = ("S16", lambda: _clamp16(round(t.amps * 10)), None)
         od[(0x2100, 2)] = ("S16", lambda: _clamp16(round(st.amps * 10)), None)
@@ -273,7 +274,7 @@ class RoboteqNode:
         od[(0x1017, 0)] = ("U16", lambda: self.heartbeat_ms, self._set_heartbeat)
         od[(0x1018, 0)] = ("U8", lambda: 4, None)
         for sub, value in ((1, 0x00000469), (2, 0x00002360), (3, 0x00020001), (4, 0x00001000 + self.n)):
-            od[(0x1018, sub)] = ("U32", lambda value=value: value, None)
+            od[(0x1018, sub)] = ("U32", functools.partial(int, value), None)
         self.od = od
 
     def _pdo_object(self, index: int, sub: int, write: int | None) -> tuple[int, str] | None:
@@ -341,7 +342,7 @@ class RoboteqNode:
         typ, getter, _ = entry
         if getter is None:
             raise SdoAbort(ABORT_WRITE_ONLY)
-        return int(getter()), typ
+        return int(getter() or 0), typ
 
     def write_object(self, index: int, sub: int, raw: bytes, now_s: float) -> None:
         """Apply a write (SDO download or RPDO field) of little-endian ``raw``; raises SdoAbort."""
@@ -479,7 +480,6 @@ class RoboteqNode:
         periods = list(self.s.tpdo_periods_ms) + [0] * 4
         self.tpdos = [_Pdo(base + self.n, 255, periods[i], list(m)) for i, (base, m) in
                       enumerate(zip((0x180, 0x280, 0x380, 0x480), DEFAULT_TPDO_MAPS))]
-        self._rpdo_by_cob = {}
         self._traction_rpm = 0.0
         self._steer_counts = self.steer.position_counts
         self._decel_before_estop = self.traction.decel_rpm_s

@@ -5,11 +5,11 @@ This is the object the emulated LMS111 calls (``laser_ranges``) each time it bui
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
 
+from services.common.se2 import compose
 from services.sim.robot_model import SwerveRobot
 from services.sim.world import World
 
@@ -39,9 +39,7 @@ class ScanSource:
     def laser_pose(self) -> tuple[float, float, float]:
         """The laser's pose in the world frame (x m, y m, theta rad)."""
         r = self.robot
-        mx, my, mth = self.mount
-        c, s = math.cos(r.theta), math.sin(r.theta)
-        return r.x + c * mx - s * my, r.y + s * mx + c * my, r.theta + mth
+        return compose((r.x, r.y, r.theta), self.mount)
 
     def laser_ranges(self, angles_rad: np.ndarray) -> tuple[float, np.ndarray]:
         x, y, th = self.laser_pose()

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from services.common.robot import RobotSpec
+from services.common.se2 import wrap_angle
 from services.sim.config import SimConfig
 from services.sim.razor import RazorImu
 from services.sim.robot_model import MotorUnits, SlipModel, SwerveRobot
@@ -107,6 +108,6 @@ class Simulation:
             return False
         turn = theta - self.robot.theta
         self.robot.teleport(x, y, theta)
-        self.imu.yaw_rad = (self.imu.yaw_rad + turn + math.pi) % (2 * math.pi) - math.pi  # carried: the gyro feels it
+        self.imu.yaw_rad = wrap_angle(self.imu.yaw_rad + turn)  # carried: the gyro feels it
         self.robot.collided = self.world.circle_collides(x, y, self.footprint_radius_m)
         return True

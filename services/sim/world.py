@@ -103,7 +103,7 @@ class World:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.solid.shape  # type: ignore[return-value]
+        return self.solid.shape
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -300,7 +300,7 @@ class World:
 
     @classmethod
     def from_rectangles(cls, name: str, resolution_m: float, extent: list[float], free: list[list[float]],
-                        obstacles: list[list[float]], glass: list[list[float]] | None = None, **kwargs) -> World:  # noqa: ANN003
+                        obstacles: list[list[float]], glass: list[list[float]] | None = None, **kwargs) -> World:
         x0, y0, x1, y1 = _check_rect(extent, "extent")
         cols = int(round((x1 - x0) / resolution_m))
         rows = int(round((y1 - y0) / resolution_m))
@@ -338,7 +338,7 @@ class World:
     @classmethod
     def from_dict(cls, data: dict, source: str = "world") -> World:
         try:
-            goals = [Goal(str(g["id"]), tuple(map(float, g["pose"]))) for g in data.get("goals", [])]
+            goals = [Goal(str(g["id"]), _pose3(g["pose"])) for g in data.get("goals", [])]
             dynamic = {}
             for i, d in enumerate(data.get("dynamic_obstacles", [])):
                 oid = str(d.get("id", f"dynamic{i + 1}"))
@@ -415,14 +415,20 @@ def load_world(world: str = "", map_yaml: str = "") -> World:
     return World.load_builtin(world or "corridor")
 
 
-def _check_rect(rect, what: str) -> tuple[float, float, float, float]:  # noqa: ANN001
+def _pose3(values: list[float]) -> tuple[float, float, float]:
+    """A goal pose [x_m, y_m, theta_rad] as floats (a wrong length fails here, naming the length)."""
+    x, y, theta = (float(v) for v in values)
+    return x, y, theta
+
+
+def _check_rect(rect, what: str) -> tuple[float, float, float, float]:
     try:
         vals = tuple(float(v) for v in rect)
     except (TypeError, ValueError):
         raise WorldError(f"{what}: expected [x_min, y_min, x_max, y_max] numbers, got {rect!r}") from None
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or vals[0] >= vals[2] or vals[1] >= vals[3]:
         raise WorldError(f"{what}: expected finite [x_min, y_min, x_max, y_max] with min < max, got {rect!r}")
-    return vals  # type: ignore[return-value]
+    return vals
 
 
 def _free_run_table(solid: np.ndarray) -> np.ndarray:

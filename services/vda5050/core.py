@@ -29,6 +29,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from services.common.se2 import wrap_angle
 from services.vda5050.reachability import Reachability
 from services.vda5050.schemas import validate
 
@@ -169,10 +170,6 @@ class OrderRejected(Exception):
         self.refs = refs
 
 
-def wrap(angle_rad: float) -> float:
-    return math.atan2(math.sin(angle_rad), math.cos(angle_rad))
-
-
 def _error(error_type: str, level: str, description: str, refs: dict[str, Any]) -> dict[str, Any]:
     return {"errorType": error_type, "errorLevel": level, "errorDescription": description,
             "errorReferences": [{"referenceKey": k, "referenceValue": str(v)} for k, v in refs.items()]}
@@ -229,7 +226,7 @@ class Vehicle:
 
     def on_pose(self, x: float, y: float, theta: float) -> list[Effect]:
         if all(math.isfinite(v) for v in (x, y, theta)):
-            self.signals.pose = (x, y, wrap(theta))
+            self.signals.pose = (x, y, wrap_angle(theta))
         return self._progress()
 
     def on_localization(self, state: str, match_score: float, spread_m: float) -> None:
@@ -315,7 +312,7 @@ class Vehicle:
         dxy, dth = self._deviation(node)
         if math.hypot(pose[0] - p["x"], pose[1] - p["y"]) > dxy:
             return False
-        return "theta" not in p or abs(wrap(pose[2] - p["theta"])) <= dth
+        return "theta" not in p or abs(wrap_angle(pose[2] - p["theta"])) <= dth
 
     # ------------------------------------------------------------------ order progress
 

@@ -33,11 +33,9 @@ from proto.messages import (
 )
 from proto.registry import TOPICS
 from services.cli.stack_process import Stack
-from services.cli.up import service_available
 from tests.support.waiting import wait_for_sync
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow,
-              pytest.mark.skipif(not service_available("nav"), reason="needs the nav service")]
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 SERVICES = ["sim", "drive", "lidar", "localization", "nav"]
 START = (1.0, 3.2, 0.0)  # corridor world
@@ -64,15 +62,15 @@ class Navigator:
         self.session.declare_subscriber(stack.keys("nav/status"), self._on(NavStatus, "status"))
         self.session.declare_subscriber(stack.keys("sim/ground_truth"), self._on(GroundTruth, "truth"))
 
-    def _on(self, t: type, attr: str):  # noqa: ANN202
-        def cb(sample) -> None:  # noqa: ANN001
+    def _on(self, t: type, attr: str):
+        def cb(sample) -> None:
             msg = codec.decode_as(t, sample.payload.to_bytes())
             with self.lock:
                 setattr(self, attr, msg)
                 getattr(self, f"{attr}_log").append(msg)
         return cb
 
-    def query(self, name: str, request, reply_type: type):  # noqa: ANN001, ANN201
+    def query(self, name: str, request, reply_type: type):
         """The reply to ``name``; asked again while nobody answers (a fresh service's health token comes up before
         its queryables)."""
         key = self.stack.keys(name)

@@ -15,7 +15,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.cli.stack_process import REPO_ROOT, Stack, free_port
+from services.cli.stack_process import REPO_ROOT, Stack
+from services.common.ports import free_port
 from tests.faults.test_faults_services import Observer
 from tests.support.waiting import wait_for_sync
 
@@ -57,7 +58,7 @@ class Router:
 
 
 @pytest.fixture
-def routed(tmp_path) -> Iterator[tuple[Router, Stack, Observer]]:  # noqa: ANN001
+def routed(tmp_path) -> Iterator[tuple[Router, Stack, Observer]]:
     router = Router(free_port())
     router.start()
     run_dir = tmp_path / "run"

@@ -59,10 +59,10 @@ class Observer:
         self._thread = threading.Thread(target=self._stream, daemon=True)
         self._thread.start()
 
-    def _on(self, name: str):  # noqa: ANN202
+    def _on(self, name: str):
         key = self.stack.keys(name)
 
-        def cb(sample) -> None:  # noqa: ANN001
+        def cb(sample) -> None:
             try:
                 msg = codec.decode_as(TOPICS[name], sample.payload.to_bytes(), key)
             except codec.ProtoDecodeError:

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.stack_process import Stack, free_port
+from services.cli.stack_process import Stack
+from services.common.ports import free_port
 
 __all__ = ["Stack", "free_port", "stack_factory"]
 
@@ -17,7 +18,7 @@ def stack_factory(tmp_path: Path) -> Iterator:
     """``stack_factory(services=[...], **options).start()``; every stack is stopped at teardown."""
     stacks: list[Stack] = []
 
-    def make(services: list[str] | None = None, **kwargs) -> Stack:  # noqa: ANN003
+    def make(services: list[str] | None = None, **kwargs) -> Stack:
         run_dir = tmp_path / f"stack{len(stacks)}"
         run_dir.mkdir()
         st = Stack(run_dir, services, **kwargs)

@@ -15,7 +15,7 @@ import numpy as np
 
 from proto.messages import GroundTruth, Odometry, Pose2D, PoseWithCovariance, TeleportRequest, Transform2D
 from services.common.node import Node
-from services.localization.amcl import compose, wrap_angle
+from services.common.se2 import compose, wrap_angle
 from services.localization.synthetic import route
 
 ODOM_SCALE = 1.01

@@ -17,7 +17,7 @@ from typing import Any
 import paho.mqtt.client as paho
 import pytest
 
-from services.cli.stack_process import free_port
+from services.common.ports import free_port
 from services.vda5050.schemas import validate
 
 MASTER_DIR = Path(__file__).resolve().parents[1] / "vda5050_master"
@@ -159,7 +159,7 @@ class Recorder:
         self.client.subscribe(f"{base}/#")
         self.client.loop_start()
 
-    def _on_message(self, client, userdata, msg) -> None:  # noqa: ANN001
+    def _on_message(self, client, userdata, msg) -> None:
         topic = msg.topic.rsplit("/", 1)[-1]
         with self._lock:
             self.messages.append((time.monotonic(), topic, bytes(msg.payload)))

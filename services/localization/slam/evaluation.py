@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .se2 import between, compose, wrap_angle
+from services.common.se2 import between, compose, wrap_angle
 
 
 @dataclass

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.common.se2 import between, compose, inverse, transform_points, wrap_angle
+
 from .mapper import GraphSlam, SlamConfig
 from .occupancy import OccupancyGrid
-from .se2 import between, compose, inverse, transform_points, wrap_angle
 
 
 def grow_to_cover(grid: OccupancyGrid, points: np.ndarray, margin_m: float = 5.0) -> OccupancyGrid:
@@ -137,6 +138,7 @@ class LiveMapper:
             self._grid = slam.render_map()
             self.full_renders += 1
         else:
+            assert self._rendered_poses is not None
             for k in range(len(self._rendered_poses), n):
                 kf = slam._keyframes[k]
                 if not len(kf.map_points):

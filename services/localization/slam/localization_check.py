@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from services.common.se2 import transform_points, wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
@@ -22,7 +23,6 @@ from .logs import LaserLog
 from .mapper import scan_to_points
 from .occupancy import OccupancyGrid
 from .odometry_noise import OdometryNoise, corrupt_poses
-from .se2 import transform_points, wrap_angle
 
 
 @dataclass
@@ -68,14 +68,16 @@ def localize_on_reference(log: LaserLog, noise: OdometryNoise, *, params: AmclPa
     odometry, _ = corrupt_poses(reference, noise)
     amcl = Amcl(grid, params, np.random.default_rng(noise.seed))
     amcl.set_initial_pose(tuple(reference[0]), np.diag([0.1**2, 0.1**2, 0.05**2]))
-    mount = tuple(float(v) for v in log.sensor_pose)
+    mx, my, mth = (float(v) for v in log.sensor_pose)
+    mount = (mx, my, mth)
     errors, turns = [], []
     for k, scan in enumerate(log.scans):
         n = len(scan.ranges_m)
         increment = float(scan.angles_rad[1] - scan.angles_rad[0]) if n > 1 else 0.0
         beams = select_beams(scan.ranges_m, float(scan.angles_rad[0]), increment, scan.min_range_m,
                              min(scan.max_range_m, 40.0), params)
-        if not amcl.process(tuple(float(v) for v in odometry[k]), beams, mount) or amcl.estimate is None:
+        ox, oy, oth = (float(v) for v in odometry[k])
+        if not amcl.process((ox, oy, oth), beams, mount) or amcl.estimate is None:
             continue
         est = np.asarray(amcl.estimate.pose, float)
         errors.append(math.hypot(est[0] - reference[k, 0], est[1] - reference[k, 1]))

@@ -17,10 +17,11 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from .se2 import between, compose, interpolate, inverse, wrap_angle
+from services.common.se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
 #: a laser further than this from the robot frame is a malformed record, not a mount
@@ -147,7 +148,7 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
         odom_conns = [c for c in reader.connections if c.msgtype == "nav_msgs/msg/Odometry"
                       and (odom_topic is None or c.topic == odom_topic)][:1]
         tf_conns = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
-        raw_scans = []
+        raw_scans: list[Any] = []
         odom_stamps: list[float] = []
         odom_poses: list[tuple[float, float, float]] = []
         tf_odom: list[tuple[float, float, float, float]] = []
@@ -155,7 +156,7 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
         dynamic: dict[str, tuple[str, np.ndarray]] = {}
         base_frames: list[str] = []
         for conn, _, raw in reader.messages(connections=scan_conns + odom_conns + tf_conns):
-            msg = reader.deserialize(raw, conn.msgtype)
+            msg: Any = reader.deserialize(raw, conn.msgtype)
             if conn in scan_conns:
                 raw_scans.append(msg)
             elif conn in odom_conns:

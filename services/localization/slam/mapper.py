@@ -35,11 +35,12 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
+from services.common.se2 import between, compose, inverse, transform_points, wrap_angle
+
 from .likelihood import MultiResolutionGrid
 from .matcher import MatchResult, correlative_search, refine, translation_sharpness
 from .occupancy import OccupancyGrid
 from .pose_graph import PoseGraph
-from .se2 import between, compose, inverse, transform_points, wrap_angle
 
 
 class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.se2 import transform_points, wrap_angle
+
 from .likelihood import LikelihoodGrid, MultiResolutionGrid
-from .se2 import transform_points, wrap_angle
 
 
 @dataclass
@@ -86,7 +87,7 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
             hessian = inv_var * (jac.T @ jac)
             gradient = inv_var * (jac.T @ residual)
             system = hessian + np.eye(3) * 1e-6
-            if has_prior:
+            if has_prior and prior_information is not None:
                 system += prior_information
                 gradient = gradient + prior_information @ diff
             try:

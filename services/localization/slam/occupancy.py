@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .se2 import transform_points
+from services.common.se2 import transform_points
 
 PGM_OCCUPIED = 0
 PGM_FREE = 254

@@ -20,8 +20,9 @@ import math
 import msgspec
 import numpy as np
 
+from services.common.se2 import between, compose
+
 from .logs import LaserLog, LaserScanRecord
-from .se2 import between, compose
 
 
 class OdometryNoise(msgspec.Struct, forbid_unknown_fields=True):

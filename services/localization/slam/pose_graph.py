@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
-from .se2 import wrap_angle
+from services.common.se2 import wrap_angle
 
 
 class PoseGraph:

@@ -1,0 +1,150 @@
+"""A scenario file (TOML) as data: the world or map, start, repeats, speed, goals, dynamic obstacles and the optional
+mapping phase; ``load_scenario`` checks it and names what is wrong (services/cli/scenario.py documents the format)."""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from proto import messages as m
+
+
+@dataclass
+class Goal:
+    id: str
+    pose: tuple[float, float, float]
+
+
+@dataclass
+class DynamicObstacle:
+    rect: tuple[float, float, float, float]
+    during_goal: int
+    appear_after_s: float
+
+
+@dataclass
+class Mapping:
+    """The ``[mapping]`` table: the jog route, the saved map's name and the jog speed."""
+
+    route: list[tuple[float, float, float]]
+    save_as: str
+    jog_speed_mps: float
+
+
+@dataclass
+class Scenario:
+    goals: list[Goal]
+    world: str | None = None
+    map_yaml: str | None = None
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    repeats: int = 1
+    speed: float = 1.0
+    dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
+    name: str = "scenario"
+    mapping: Mapping | None = None
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be run; the message names the key."""
+
+
+def _pose(v: Any, what: str) -> tuple[float, float, float]:
+    if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, int | float) for x in v)):
+        raise ScenarioError(f"{what} must be [x, y, theta] numbers, got {v!r}")
+    if not all(math.isfinite(x) for x in v):
+        raise ScenarioError(f"{what} must be finite, got {v!r}")
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _mapping(raw: Any, p: Path, name: str) -> Mapping:
+    from services.common.robot import RobotSpec
+
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{p}: mapping must be a table ([mapping]), got {raw!r}")
+    extra = sorted(set(raw) - {"route", "save_as", "jog_speed_mps"})
+    if extra:
+        raise ScenarioError(f"{p}: mapping: unknown key(s) {', '.join(extra)}; known: jog_speed_mps, route, save_as")
+    route_raw = raw.get("route")
+    if not isinstance(route_raw, list) or not route_raw:
+        raise ScenarioError(f"{p}: mapping.route must be a non-empty list of [x, y, theta] waypoints, got "
+                            f"{route_raw!r}")
+    route = [_pose(w, f"mapping.route[{k}]") for k, w in enumerate(route_raw, 1)]
+    default_name = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:57].lstrip(".-") or "scenario"
+    save_as = raw.get("save_as", f"{default_name}_built")
+    if not isinstance(save_as, str) or not m.MAP_NAME.match(save_as):
+        raise ScenarioError(f"{p}: mapping.save_as {save_as!r} must be a map name of 1-64 letters, digits, '_', '-' "
+                            "or '.' (no path, not starting with '.' or '-')")
+    spec = RobotSpec()
+    limit = min(spec.vx_max_mps, spec.vy_max_mps)
+    speed = raw.get("jog_speed_mps", spec.vx_max_mps)
+    if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed <= limit:
+        raise ScenarioError(f"{p}: mapping.jog_speed_mps must be a number in (0, {limit:g}] (the robot's vx_max_mps "
+                            f"and vy_max_mps), got {speed!r}")
+    return Mapping(route, save_as, float(speed))
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except OSError as exc:
+        raise ScenarioError(f"{p}: cannot read: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
+    known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description",
+             "mapping"}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ScenarioError(f"{p}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
+    if ("world" in data) == ("map" in data):
+        raise ScenarioError(f"{p}: give exactly one of `world` (built-in name) or `map` (ROS map YAML)")
+    map_yaml = None
+    if "map" in data:
+        mp = Path(data["map"])
+        candidates = [mp] if mp.is_absolute() else [(p.parent / mp).resolve(), mp.resolve()]
+        found = [c for c in candidates if c.is_file()]
+        if not found:
+            raise ScenarioError(f"{p}: map {data['map']} not found (relative to the scenario file or the current"
+                                f" folder: {', '.join(map(str, candidates))})")
+        map_yaml = str(found[0])
+    goals_raw = data.get("goals", [])
+    if not goals_raw:
+        raise ScenarioError(f"{p}: no [[goals]]")
+    goals = []
+    for k, g in enumerate(goals_raw, 1):
+        if "pose" not in g:
+            raise ScenarioError(f"{p}: goals[{k}] has no pose")
+        extra = sorted(set(g) - {"pose", "id", "paper_mean_error"})
+        if extra:
+            raise ScenarioError(f"{p}: goals[{k}]: unknown key(s) {', '.join(extra)}")
+        goals.append(Goal(str(g.get("id", k)), _pose(g["pose"], f"goals[{k}].pose")))
+    obstacles = []
+    for k, o in enumerate(data.get("dynamic_obstacles", []), 1):
+        extra = sorted(set(o) - {"rect", "during_goal", "appear_after_s"})
+        if extra:
+            raise ScenarioError(f"{p}: dynamic_obstacles[{k}]: unknown key(s) {', '.join(extra)}")
+        rect = o.get("rect")
+        if not (isinstance(rect, list) and len(rect) == 4 and rect[0] < rect[2] and rect[1] < rect[3]):
+            raise ScenarioError(f"{p}: dynamic_obstacles[{k}].rect must be [xmin, ymin, xmax, ymax], got {rect!r}")
+        during = int(o.get("during_goal", 1))
+        if not 1 <= during <= len(goals):
+            raise ScenarioError(f"{p}: dynamic_obstacles[{k}].during_goal {during} is not a goal index 1..{len(goals)}")
+        x0, y0, x1, y1 = (float(v) for v in rect)
+        obstacles.append(DynamicObstacle((x0, y0, x1, y1), during, float(o.get("appear_after_s", 0.0))))
+    repeats = int(data.get("repeats", 1))
+    speed = float(data.get("speed", 1.0))
+    if repeats < 1 or not speed > 0:
+        raise ScenarioError(f"{p}: repeats must be >= 1 and speed > 0")
+    name = data.get("name", p.stem)
+    if not isinstance(name, str) or not name:
+        raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
+    mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
+    return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
+                    speed, obstacles, name, mapping)
+
+
+# --------------------------------------------------------------------------- results

@@ -1,0 +1,102 @@
+"""SE(2) on poses ``(x_m, y_m, theta_rad)``: the one angle wrap, composition, inverse and point transform.
+
+Every function takes either plain tuples (one pose, exact ``math`` arithmetic, a tuple back) or numpy arrays of
+shape (3,) or (N, 3) (vectorised, an array back); an array in either argument selects the array form.
+
+- ``wrap_angle(a)`` folds an angle into (-pi, pi] (the range of ``atan2``).
+- ``compose(a, b) = a ⊕ b``: pose b given in frame a, expressed in a's parent frame:
+  ``(xa + cos(ta) xb - sin(ta) yb, ya + sin(ta) xb + cos(ta) yb, wrap(ta + tb))``.
+- ``inverse(a) = ⊖a`` with ``a ⊕ ⊖a = 0``; ``between(a, b) = ⊖a ⊕ b`` (pose b seen from frame a).
+- ``transform_points(pose, p) = R(theta) p + t`` for points (N, 2) given in frame ``pose``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import overload
+
+import numpy as np
+
+Pose2 = tuple[float, float, float]
+"""(x_m, y_m, theta_rad)."""
+
+
+@overload
+def wrap_angle(angle_rad: float) -> float: ...
+@overload
+def wrap_angle(angle_rad: np.ndarray) -> np.ndarray: ...
+def wrap_angle(angle_rad: float | np.ndarray) -> float | np.ndarray:
+    """Angle(s) folded into (-pi, pi]: ``pi - ((pi - a) mod 2 pi)``; a scalar in range comes back unchanged."""
+    if isinstance(angle_rad, np.ndarray):
+        return math.pi - (math.pi - angle_rad) % math.tau
+    folded = math.remainder(angle_rad, math.tau)  # exact IEEE remainder, in [-pi, pi]
+    return folded + math.tau if folded <= -math.pi else folded
+
+
+@overload
+def compose(a: Sequence[float], b: Sequence[float]) -> Pose2: ...
+@overload
+def compose(a: np.ndarray, b: np.ndarray | Sequence[float]) -> np.ndarray: ...
+@overload
+def compose(a: Sequence[float], b: np.ndarray) -> np.ndarray: ...
+def compose(a: np.ndarray | Sequence[float], b: np.ndarray | Sequence[float]) -> np.ndarray | Pose2:
+    """a ⊕ b: pose b given in frame a, returned in a's parent frame (module docstring)."""
+    if not isinstance(a, np.ndarray) and not isinstance(b, np.ndarray):
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+    pa = np.asarray(a, float)
+    pb = np.asarray(b, float)
+    c_arr, s_arr = np.cos(pa[..., 2]), np.sin(pa[..., 2])
+    x = pa[..., 0] + c_arr * pb[..., 0] - s_arr * pb[..., 1]
+    y = pa[..., 1] + s_arr * pb[..., 0] + c_arr * pb[..., 1]
+    return np.stack([x, y, wrap_angle(np.asarray(pa[..., 2] + pb[..., 2]))], axis=-1)
+
+
+@overload
+def inverse(a: Sequence[float]) -> Pose2: ...
+@overload
+def inverse(a: np.ndarray) -> np.ndarray: ...
+def inverse(a: np.ndarray | Sequence[float]) -> np.ndarray | Pose2:
+    """⊖a = (-R(theta)^T t, -theta), so that a ⊕ ⊖a = 0."""
+    if not isinstance(a, np.ndarray):
+        c, s = math.cos(a[2]), math.sin(a[2])
+        return (-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap_angle(-a[2]))
+    pa = np.asarray(a, float)
+    c_arr, s_arr = np.cos(pa[..., 2]), np.sin(pa[..., 2])
+    x = -c_arr * pa[..., 0] - s_arr * pa[..., 1]
+    y = s_arr * pa[..., 0] - c_arr * pa[..., 1]
+    return np.stack([x, y, wrap_angle(np.asarray(-pa[..., 2]))], axis=-1)
+
+
+@overload
+def between(a: Sequence[float], b: Sequence[float]) -> Pose2: ...
+@overload
+def between(a: np.ndarray, b: np.ndarray | Sequence[float]) -> np.ndarray: ...
+@overload
+def between(a: Sequence[float], b: np.ndarray) -> np.ndarray: ...
+def between(a: np.ndarray | Sequence[float], b: np.ndarray | Sequence[float]) -> np.ndarray | Pose2:
+    """(⊖a) ⊕ b: pose b seen from frame a."""
+    if not isinstance(a, np.ndarray) and not isinstance(b, np.ndarray):
+        return compose(inverse(a), b)
+    return compose(inverse(np.asarray(a, float)), np.asarray(b, float))
+
+
+def transform_points(pose: np.ndarray | Sequence[float], points: np.ndarray) -> np.ndarray:
+    """Points (N, 2) given in frame ``pose`` expressed in the parent frame: R(theta) p + t."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    out = np.empty_like(points, dtype=float)
+    out[:, 0] = c * points[:, 0] - s * points[:, 1] + pose[0]
+    out[:, 1] = s * points[:, 0] + c * points[:, 1] + pose[1]
+    return out
+
+
+def interpolate(stamps_s: np.ndarray, poses: np.ndarray, at_s: np.ndarray | float) -> np.ndarray:
+    """Poses (N, 3) linearly interpolated at ``at_s`` (angles along the shortest arc); clamped at the ends."""
+    stamps = np.asarray(stamps_s, float)
+    at = np.atleast_1d(np.asarray(at_s, float))
+    unwrapped = np.unwrap(poses[:, 2])
+    x = np.interp(at, stamps, poses[:, 0])
+    y = np.interp(at, stamps, poses[:, 1])
+    th = np.interp(at, stamps, unwrapped)
+    return np.stack([x, y, wrap_angle(th)], axis=-1)

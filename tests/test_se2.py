@@ -1,0 +1,118 @@
+"""services/common/se2.py, the one twist-limits type, and a guard that no copy of either comes back."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from services.common.se2 import between, compose, interpolate, inverse, transform_points, wrap_angle
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+angles = st.floats(-100.0, 100.0, allow_nan=False)
+coords = st.floats(-50.0, 50.0, allow_nan=False)
+poses = st.tuples(coords, coords, angles)
+
+
+@given(angles)
+def test_wrap_angle_range_and_equivalence(a: float) -> None:
+    w = wrap_angle(a)
+    assert -math.pi < w <= math.pi
+    assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-9) and math.isclose(math.sin(w), math.sin(a),
+                                                                                 abs_tol=1e-9)
+    arr = wrap_angle(np.array([a]))
+    assert -math.pi < arr[0] <= math.pi and arr[0] == pytest.approx(w, abs=1e-9) or abs(abs(w) - math.pi) < 1e-9
+
+
+def test_wrap_angle_convention_is_minus_pi_exclusive() -> None:
+    assert wrap_angle(math.pi) == math.pi and wrap_angle(-math.pi) == math.pi
+    assert wrap_angle(3 * math.pi / 2) == pytest.approx(-math.pi / 2)
+    assert wrap_angle(0.3) == 0.3 and wrap_angle(1e-20) == 1e-20  # in range: unchanged, bit for bit
+    np.testing.assert_allclose(wrap_angle(np.array([-math.pi, math.pi, 0.1 + 2 * math.pi])), [math.pi, math.pi, 0.1])
+
+
+@given(poses, poses)
+def test_tuple_and_array_forms_agree(a: tuple[float, float, float], b: tuple[float, float, float]) -> None:
+    t = compose(a, b)
+    arr = compose(np.array(a), np.array(b))
+    assert isinstance(t, tuple) and isinstance(arr, np.ndarray)
+    assert t[:2] == pytest.approx(tuple(arr[:2]), abs=1e-9)
+    assert math.isclose(math.cos(t[2] - arr[2]), 1.0, abs_tol=1e-12)
+    assert inverse(a)[:2] == pytest.approx(tuple(inverse(np.array(a))[:2]), abs=1e-9)
+
+
+@given(poses, poses)
+def test_group_laws(a: tuple[float, float, float], b: tuple[float, float, float]) -> None:
+    assert compose(a, inverse(a)) == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    back = compose(a, between(a, b))
+    assert back[:2] == pytest.approx(b[:2], abs=1e-9) and wrap_angle(back[2] - b[2]) == pytest.approx(0, abs=1e-9)
+
+
+def test_compose_on_rows_and_points() -> None:
+    assert compose((0.0, 0.0, math.pi / 2), (1.0, 0.0, 0.0)) == pytest.approx((0.0, 1.0, math.pi / 2))
+    rows = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, math.pi / 2]])
+    out = compose(rows, np.broadcast_to([1.0, 0.0, math.pi], rows.shape))
+    np.testing.assert_allclose(out, [[1.0, 0.0, math.pi], [1.0, 3.0, -math.pi / 2]], atol=1e-12)
+    pts = transform_points((1.0, 2.0, math.pi / 2), np.array([[1.0, 0.0], [0.0, 1.0]]))
+    np.testing.assert_allclose(pts, [[1.0, 3.0], [0.0, 2.0]], atol=1e-12)
+    mid = interpolate(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 3.0], [2.0, 0.0, -3.0]]), 0.5)
+    np.testing.assert_allclose(mid[0, :2], [1.0, 0.0])
+    assert abs(wrap_angle(float(mid[0, 2])) - math.pi) < 1e-9  # the shortest arc passes through pi, not 0
+
+
+# --------------------------------------------------------------------------- one definition of each
+
+
+COPIES = {
+    "angle wrap": [
+        r"def (wrap|wrap_angle|normalize_angle|angle_wrap|wrap_to_pi)\((?!self)",
+        r"atan2\(\s*(math|np)\.sin\(",
+        r"% \(?(2(\.0)? \* (math|np)\.pi|math\.tau|np\.tau|TWO_PI|TAU)\)? - (math|np)\.pi",
+        r"math\.remainder\([^)]*, (2(\.0)? \* math\.pi|math\.tau)\)",
+    ],
+    "SE(2) compose": [
+        r"def (_?compose|_?inverse|relative|_?between|oplus|ominus)\(",
+        r"\+ (c|ct|math\.cos\([^)]*\)) \* \w+(\[0\]|\.x) - (s|st|math\.sin\([^)]*\)) \* \w+(\[1\]|\.y)",
+    ],
+    "twist limits": [
+        r"def clamp_twist\(",
+        r"class (Twist)?Limits\b",
+    ],
+}
+HOME = {"services/common/se2.py", "services/common/robot.py"}
+
+
+def test_one_definition_of_wrap_compose_and_twist_limits() -> None:
+    """Every angle wrap, SE(2) composition and twist clamp goes through services/common (se2.py, robot.py)."""
+    copies = []
+    for folder in ("services", "proto", "tools", "tests"):
+        for path in sorted((REPO_ROOT / folder).rglob("*.py")):
+            rel = path.relative_to(REPO_ROOT).as_posix()
+            if rel in HOME or rel == "tests/test_se2.py":
+                continue
+            text = path.read_text(encoding="utf-8")
+            for helper, patterns in COPIES.items():
+                for pattern in patterns:
+                    for match in re.finditer(pattern, text):
+                        line = text.count("\n", 0, match.start()) + 1
+                        copies.append(f"{rel}:{line}: {helper}: {match.group(0)!r}")
+    assert not copies, "use services/common/se2.py or TwistLimits instead of a copy:\n" + "\n".join(copies)
+
+
+def test_the_guard_sees_a_copy(tmp_path: Path) -> None:
+    """The patterns above match the forms the copies had (so the guard can fail)."""
+    forms = {
+        "angle wrap": ["def wrap(a):", "math.atan2(math.sin(t), math.cos(t))",
+                       "(a + math.pi) % (2 * math.pi) - math.pi", "math.remainder(b - a, 2 * math.pi)",
+                       "(t + math.pi) % TWO_PI - math.pi"],
+        "SE(2) compose": ["def compose(a, b):", "a[0] + c * b[0] - s * b[1]", "r.x + c * mx.x - s * my.y"],
+        "twist limits": ["def clamp_twist(self):", "class Limits:"],
+    }
+    for helper, samples in forms.items():
+        for sample in samples:
+            assert any(re.search(p, sample) for p in COPIES[helper]), (helper, sample)
