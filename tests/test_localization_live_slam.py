@@ -27,6 +27,28 @@ def test_gates_skip_small_motions_and_map_odom_composes():
     assert np.allclose(mapper.pose_at(np.array([5.05, 5.0, 0.0])), (1.0, 2.05, math.pi / 2), atol=1e-9)
 
 
+def test_trajectory_holds_skipped_scans_and_follows_the_graph():
+    mapper = LiveMapper(min_travel_m=0.1, min_turn_rad=0.1, start_pose=(1.0, 2.0, math.pi / 2))
+    rng = np.random.default_rng(1)
+    wall = np.stack([np.full(200, 3.0), np.linspace(-3, 3, 200)], axis=1) + rng.normal(0, 0.005, (200, 2))
+    mapper.add_scan(0.0, np.array([5.0, 5.0, 0.0]), wall, np.zeros(2))
+    mapper.add_scan(0.1, np.array([5.05, 5.0, 0.02]), wall, np.zeros(2))  # skipped
+    mapper.note_skipped(0.15, np.array([5.07, 5.0, 0.0]))  # as the service records a gated scan
+    assert mapper.add_scan(0.2, np.array([5.2, 5.0, 0.0]), wall - [0.2, 0.0], np.zeros(2))
+    stamps, poses = mapper.trajectory()
+    assert np.allclose(stamps, [0.0, 0.1, 0.15, 0.2])
+    # skipped scans sit by odometry from the scan processed before them: +5 cm and +7 cm along map +y
+    assert np.allclose(poses[1], (1.0, 2.05, math.pi / 2 + 0.02), atol=1e-9)
+    assert np.allclose(poses[2], (1.0, 2.07, math.pi / 2), atol=1e-9)
+    assert np.allclose(poses[3], mapper.pose)
+    # they follow when the graph moves the scan they hang from
+    moved = mapper.slam.graph.poses()
+    moved[0] = (0.0, 0.0, 0.0)
+    mapper.slam.graph.set_poses(moved)
+    _, after = mapper.trajectory()
+    assert np.allclose(after[1], (0.05, 0.0, 0.02), atol=1e-9) and np.allclose(after[2], (0.07, 0.0, 0.0), atol=1e-9)
+
+
 def test_grow_to_cover_keeps_the_log_odds_in_place():
     grid = OccupancyGrid.covering(np.array([0.0, 0.0]), np.array([1.0, 1.0]), 0.1, margin_m=0.0)
     grid.log_odds[3, 4] = 2.5

@@ -33,6 +33,7 @@ from services.common.node import Node
 from services.common.se2 import wrap_angle
 from services.localization.map_io import FREE, OCCUPIED, load_map
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
+from services.localization.slam.map_files import read_trajectory
 from tests.support.hmi import HmiClient, base_url, password_of
 from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
@@ -154,6 +155,8 @@ async def test_map_the_corridor_save_it_and_navigate_on_it(stack_factory, tmp_pa
         assert saved.ok, saved.message
         yaml_path = Path(saved.message)
         assert yaml_path.name == "corridor_built.yaml" and yaml_path.with_suffix(".pgm").is_file()
+        stamps, _ = read_trajectory(yaml_path.with_name("corridor_built.trajectory.txt"))
+        assert len(stamps) >= stats["processed"] + stats["skipped"]  # every scan the mapper was given has a pose
         assert yaml_path.parent == stack.run_dir / "maps"
 
         agreement = map_f1(yaml_path, ground_truth(tmp_path), region=LOBBY)

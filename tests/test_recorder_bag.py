@@ -188,3 +188,30 @@ def test_triggers_fire_on_edges() -> None:
     assert tr.on_nav_status(m.NavStatus(state="failed", goal_id="g1")) is None
     assert tr.on_nav_status(m.NavStatus(state="driving", goal_id="g2")) is None
     assert tr.on_nav_status(m.NavStatus(state="failed", goal_id="g2")) == "goal-failed"
+
+
+class _FakeMonotonic:
+    def __init__(self) -> None:
+        self.now_s = 100.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_record_time_base_waits_from_the_subscriptions(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A slow session start does not count against the wait for the first clock; without a clock, wall time."""
+    from services.cli import record
+
+    fake = _FakeMonotonic()
+    monkeypatch.setattr(record.time, "monotonic", fake)
+    clock = record.LogClock()
+    fake.now_s += 10.0  # opening the session took 10 s
+    assert clock.log_ns(None, 5) is None  # not subscribed yet: undecided
+    clock.subscribed()
+    fake.now_s += 0.5
+    clock.on_clock(m.Clock(stamp=42.0))
+    assert clock.sim_base and clock.log_ns(*clock.arrival()) == 42_000_000_000
+    no_clock = record.LogClock()
+    no_clock.subscribed()
+    fake.now_s += record.LogClock.WAIT_S
+    assert no_clock.log_ns(None, 7) == 7 and no_clock.sim_base is False

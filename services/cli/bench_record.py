@@ -36,6 +36,8 @@ from services.common.se2 import compose
 SCENARIO = REPO_ROOT / "scenarios" / "corridor_table3.toml"
 RECORDED = ("scan", "odom", "tf/map_odom", "pose")
 AMCL_SEED = 7
+#: sim seconds the robot stands still at the start of the bag (a fresh localization settles in a few seconds at rest)
+REST_BEFORE_DRIVING_S = 10.0
 
 
 @dataclass
@@ -81,7 +83,9 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
     stack = Stack(run_dir / "stack", services, speed=speed, extra_args=args)
     estop_s = None
     (run_dir / "stack").mkdir(parents=True, exist_ok=True)
-    with stack.start(ready_timeout_s=300.0):
+    # listen from the router's start, before any service publishes: the black box holds every message since the
+    # recorder service started, and each one it holds must be compared with what was published
+    with stack.start(ready_timeout_s=300.0, wait_ready=False):
         session = stack.session()
 
         def keep(name: str):
@@ -91,6 +95,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
             return on_sample
 
         subs = [session.declare_subscriber(stack.keys(k), keep(k)) for k in RECORDED]
+        stack.wait_line(r"^zagv: ready", timeout_s=300.0)
         cpu0 = _children_cpu_s()
         rec = subprocess.Popen([sys.executable, "-m", "services.cli", "record", "--connect", stack.endpoint,
                                 "--robot-id", stack.robot_id, "-o", str(bag), "--quiet"], cwd=REPO_ROOT, env=_env(),
@@ -108,7 +113,13 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
             time.sleep(1.0)  # the last messages reach the recorder
         finally:
             rec.send_signal(2)
-            out, _ = rec.communicate(timeout=60)
+            try:
+                out, _ = rec.communicate(timeout=300)  # it writes what it still holds: minutes on a loaded machine
+            except subprocess.TimeoutExpired:
+                rec.kill()
+                out, _ = rec.communicate()
+                raise RuntimeError("zagv record did not stop within 300 s of SIGINT:\n"
+                                   + out.decode(errors="replace")) from None
             for s in subs:
                 s.undeclare()
         if rec.returncode != 0:
@@ -119,9 +130,16 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                                blackbox_dir=run_dir / "stack" / "blackbox")
     goals_done = [g for r in runs for g in r["goals"]]
     result.goals, result.goals_reached = len(goals_done), sum(1 for g in goals_done if g["reached"])
-    odom = [codec.decode_as(m.Odometry, p) for p in published["odom"]]
-    result.sim_s = odom[-1].stamp - odom[0].stamp if len(odom) > 1 else 0.0
+    result.sim_s = bag_span_s(bag)
     return result
+
+
+def bag_span_s(bag: Path) -> float:
+    """Robot seconds between the first and the last message of a recording."""
+    from services.recorder.source import BagSource
+
+    with BagSource(bag) as src:
+        return (src.end_ns - src.start_ns) / 1e9
 
 
 async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
@@ -132,6 +150,10 @@ async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:
         await wait_until(lambda: c.truth is not None and c.odom_count > 5, "no ground truth and odometry", 60.0)
+        # the bag opens with the robot at rest: a localization fed the bag settles there (at-rest updates) as the
+        # recorded one did before the bag opened, instead of converging while the robot already drives
+        rest_until_s = c.sim_time + REST_BEFORE_DRIVING_S
+        await wait_until(lambda: c.sim_time >= rest_until_s, f"{REST_BEFORE_DRIVING_S} s of sim time at rest", 300.0)
         goals = [await run_goal(c, sc, 1, k, g, 300.0, None) for k, g in enumerate(sc.goals, 1)]
     finally:
         c.close()
@@ -213,15 +235,13 @@ def trajectory_rms_m(recorded: list[m.Transform2D], replayed: list[m.Transform2D
 def replay_speed_factor(bag: Path) -> float:
     """Bag seconds per wall second of ``zagv replay --rate 0`` (publishing into a router with no subscriber)."""
     from services.common.ports import free_port
-    from services.recorder.source import BagSource
 
     port = free_port()
     router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
                               cwd=REPO_ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         time.sleep(1.0)
-        with BagSource(bag) as src:
-            bag_s = (src.end_ns - src.start_ns) / 1e9
+        bag_s = bag_span_s(bag)
         t0 = time.monotonic()
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "--rate", "0", "--quiet",
                         "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,

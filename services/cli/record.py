@@ -41,14 +41,19 @@ class LogClock:
 
     The time base is chosen once: the clock's when a ``clock`` message comes within ``WAIT_S`` of the start (messages
     that arrived before it, such as the latched map, get its time), else wall time for the whole recording, so a bag
-    never mixes the two."""
+    never mixes the two. The start is when the subscriptions exist (``subscribed``): opening the session can take
+    longer than ``WAIT_S`` on a loaded machine, which then recorded a simulated run on wall time."""
 
-    WAIT_S = 1.0
+    WAIT_S = 2.0
 
     def __init__(self) -> None:
         self.sim_s: float | None = None
         self.first_sim_s: float | None = None
         self.sim_base: bool | None = None
+        self.started: float | None = None  # set by ``subscribed``
+
+    def subscribed(self) -> None:
+        """The subscriptions exist: the wait for a first ``clock`` starts now."""
         self.started = time.monotonic()
 
     def on_clock(self, msg: Clock) -> None:
@@ -56,15 +61,20 @@ class LogClock:
             self.sim_s = msg.stamp
             if self.first_sim_s is None:
                 self.first_sim_s = msg.stamp
-                self.sim_base = time.monotonic() - self.started <= self.WAIT_S
+                self.sim_base = self.started is None or time.monotonic() - self.started <= self.WAIT_S
 
     def arrival(self) -> tuple[int | None, int]:
         """(sim ns or None, wall ns) of a message arriving now."""
         return (None if self.sim_s is None else int(round(self.sim_s * 1e9))), time.time_ns()
 
+    def decide_now(self) -> None:
+        """No more waiting: wall time unless a clock came."""
+        if self.sim_base is None:
+            self.sim_base = False
+
     def log_ns(self, sim_ns: int | None, wall_ns: int) -> int | None:
         """The log time of a message that arrived at (sim_ns, wall_ns); None: not decided yet (wait)."""
-        if self.sim_base is None and time.monotonic() - self.started >= self.WAIT_S:
+        if self.sim_base is None and self.started is not None and time.monotonic() - self.started >= self.WAIT_S:
             self.sim_base = False
         if self.sim_base is None:
             return None
@@ -139,6 +149,7 @@ def run_record(args: argparse.Namespace) -> int:
             subs.append(session.declare_subscriber(keys.everything, on_sample))
         else:
             subs += [session.declare_subscriber(keys(n), on_sample) for n in dict.fromkeys([*names, "clock"])]
+        clock.subscribed()
         if names is None or "map" in names:
             session.get(keys("map"), lambda r: on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
         next_line = time.monotonic() + 1.0
@@ -156,7 +167,7 @@ def run_record(args: argparse.Namespace) -> int:
         for s in subs:
             s.undeclare()
         session.close()
-        clock.started -= clock.WAIT_S  # decide now for what is still undecided
+        clock.decide_now()  # for what is still undecided
         while True:  # what arrived before the stop is written
             try:
                 write(*samples.get_nowait())

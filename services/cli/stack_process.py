@@ -104,7 +104,8 @@ class Stack:
                     self.lines.append(raw.decode(errors="replace").rstrip("\n"))
 
     def __enter__(self) -> Stack:
-        return self.start()
+        """Starts the stack unless ``start`` already did (``with stack.start(...):`` must not start a second one)."""
+        return self if self.proc is not None else self.start()
 
     def __exit__(self, *exc: object) -> None:
         self.stop()

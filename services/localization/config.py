@@ -28,7 +28,9 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
       ``mapping_odom_sigma_theta_rad`` (1 sigma per processed scan): along a corridor a scan pins the robot only
       to within about a centimetre, and that error would otherwise add up from keyframe to keyframe (the corridor
       came out 1 % long with 0.02 m). Wheel encoders with an IMU are better than that; raise them for a robot
-      whose odometry is not.
+      whose odometry is not. ``mapping_sync`` (slam_toolbox's synchronous mode, for logs played by ``zagv replay``):
+      every scan is handled in arrival order, however far behind mapping falls; false (live): when mapping falls
+      behind, only the newest scan is kept.
     """
 
     map_yaml: str = ""
@@ -54,6 +56,7 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     map_publish_period_s: float = 2.0
     mapping_odom_sigma_xy_m: float = 0.003
     mapping_odom_sigma_theta_rad: float = 0.01
+    mapping_sync: bool = False
 
     def __post_init__(self) -> None:
         self.validate()

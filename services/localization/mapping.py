@@ -6,8 +6,9 @@
   per processed scan), ``tf/map_odom`` (latched, every scan) and the growing ``map`` (latched, every
   ``map_publish_period_s``).
 - navigation: ``LocalizationNode`` (map server + AMCL), fed by this dispatcher.
-Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) into the
-maps folder and replies with the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
+Queries: ``localization/save_map`` {name} writes ``<name>.yaml`` + ``<name>.pgm`` (ROS map_server trinary) and
+``<name>.trajectory.txt`` (every scan's pose, as ``zagv map build`` writes it) into the maps folder and replies with
+the YAML path; ``localization/mode`` {mode, map_yaml} switches: to mapping (a new map
 whose frame starts at the current pose), or to navigation on ``map_yaml`` (the name of a map in the maps folder,
 never a path; empty: the last saved map), starting AMCL at the current pose. ``initial_pose``/``global``/
 ``nomotion`` are answered by AMCL (refused while mapping).
@@ -16,6 +17,7 @@ never a path; empty: the last saved map), starting AMCL at the current pose. ``i
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import math
 import time
@@ -44,7 +46,7 @@ from services.localization.map_io import MapError, OccupancyMap, load_map
 from services.localization.node import LocalizationNode, Outputs
 from services.localization.odom_history import OdomHistory
 from services.localization.slam.live import LiveMapper
-from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map
+from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map, write_trajectory
 from services.localization.slam.mapper import SlamConfig, scan_to_points
 from services.localization.slam.occupancy import OccupancyGrid
 
@@ -78,6 +80,8 @@ class MappingNode:
         self.odom = OdomHistory(cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
         self._newest_scan: LaserScan | None = None
+        self._inbox: collections.deque[Odometry | LaserScan] = collections.deque()  # mapping_sync
+        self._drain_scheduled = False
         self.stats: dict[str, float] = {"scans": 0, "processed": 0, "skipped": 0, "bad_scans": 0,
                                         "keyframes": 0, "loop_closures": 0, "loop_closures_rejected": 0,
                                         "scan_match_fallbacks": 0, "cpu_ms_per_processed_scan": 0.0,
@@ -96,6 +100,12 @@ class MappingNode:
         return float(p[0]), float(p[1]), float(p[2])
 
     def on_odom(self, msg: Odometry) -> None:
+        if self.cfg.mapping_sync:
+            self._enqueue(msg)
+            return
+        self._take_odom(msg)
+
+    def _take_odom(self, msg: Odometry) -> None:
         p = msg.pose
         if not all(math.isfinite(v) for v in (msg.stamp, p.x, p.y, p.theta)):
             self.stats["bad_odom"] = self.stats.get("bad_odom", 0) + 1
@@ -108,13 +118,36 @@ class MappingNode:
     def on_scan(self, msg: LaserScan) -> None:
         """Keeps only the newest scan and handles it once the event loop has delivered what was queued before it:
         when mapping falls behind (a loaded machine, a keyframe with a loop search), older scans are dropped
-        instead of queueing up."""
+        instead of queueing up. With ``mapping_sync`` every scan is handled, in order (a replayed log)."""
         self.stats["scans"] += 1
+        if self.cfg.mapping_sync:
+            self._enqueue(msg)
+            return
         if self._newest_scan is not None:
             self.stats["dropped_behind"] = self.stats.get("dropped_behind", 0) + 1
         else:
             asyncio.get_running_loop().call_soon(self._take_newest_scan)
         self._newest_scan = msg
+
+    def _enqueue(self, msg: Odometry | LaserScan) -> None:
+        """Synchronous mode: odom and scans are handled in arrival order, at most one scan per turn of the event
+        loop (its timers and the liveness heartbeat run in between however long the backlog grows)."""
+        self._inbox.append(msg)
+        self.stats["sync_backlog_max"] = max(self.stats.get("sync_backlog_max", 0), len(self._inbox))
+        if not self._drain_scheduled:
+            self._drain_scheduled = True
+            asyncio.get_running_loop().call_soon(self._drain)
+
+    def _drain(self) -> None:
+        while self._inbox:
+            msg = self._inbox.popleft()
+            if isinstance(msg, LaserScan):
+                self._handle_scan(msg)
+                break
+            self._take_odom(msg)
+        self._drain_scheduled = bool(self._inbox)
+        if self._drain_scheduled:
+            asyncio.get_running_loop().call_soon(self._drain)
 
     def _take_newest_scan(self) -> None:
         msg, self._newest_scan = self._newest_scan, None
@@ -178,7 +211,7 @@ class MappingNode:
             self._map_dirty = True
             self._publish_pose(scan.stamp)
         else:
-            self.mapper.skipped += 1
+            self.mapper.note_skipped(scan.stamp, odom)
             self.stats["skipped"] = self.mapper.skipped
         self._publish_tf(scan.stamp)
         self.maybe_publish_map()
@@ -314,6 +347,7 @@ class ModeSwitcher:
             return Reply(ok=False, message="no map yet: no scan has been processed")
         try:
             path = write_ros_map(grid, folder, req.name).resolve()
+            write_trajectory(folder / f"{req.name}.trajectory.txt", *self.mapping.mapper.trajectory())
         except OSError as exc:
             return Reply(ok=False, message=f"cannot write the map into {folder}: {exc}")
         self.last_saved = path

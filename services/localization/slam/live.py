@@ -4,7 +4,9 @@ Like slam_toolbox's ``minimum_travel_distance`` / ``minimum_travel_heading``, a 
 odometry moved at least ``min_travel_m`` or turned ``min_turn_rad`` since the last processed scan; between processed
 scans the map pose is ``map_odom ∘ odom`` with ``map_odom = slam_pose ∘ odom⁻¹`` of the last processed scan. The map
 frame is anchored by ``start_pose`` (the robot's map pose at the first scan). Pending loop constraints are optimised
-at least every ``optimize_every_keyframes`` keyframes.
+at least every ``optimize_every_keyframes`` keyframes. ``trajectory()`` gives every scan fed, as ``GraphSlam``'s
+does offline: a skipped scan sits at ``x_k ⊕ (o_k⁻¹ ⊕ o)`` from the last processed scan k (odometry o), so it
+follows the optimisation too.
 """
 
 from __future__ import annotations
@@ -51,6 +53,8 @@ class LiveMapper:
         self.pose: np.ndarray | None = None
         self.processed = 0
         self.skipped = 0
+        #: skipped scans: (stamp_s, index of the last processed scan in GraphSlam, odometry step since it)
+        self._skipped_scans: list[tuple[float, int, np.ndarray]] = []
         self._optimized_at_keyframes = 0
         self._loops_at_optimize = 0
         self._grid: OccupancyGrid | None = None
@@ -69,7 +73,7 @@ class LiveMapper:
         """Process one scan if the robot moved past the gates; True when it was processed."""
         odom_pose = np.asarray(odom_pose, float)
         if not self.moved_enough(odom_pose):
-            self.skipped += 1
+            self.note_skipped(stamp_s, odom_pose)
             return False
         if self._anchor is None:
             self._anchor = compose(self.start_pose, inverse(odom_pose))
@@ -85,6 +89,26 @@ class LiveMapper:
         self.pose = pose
         self.map_odom = compose(pose, inverse(odom_pose))
         return True
+
+    def note_skipped(self, stamp_s: float, odom_pose: np.ndarray) -> None:
+        """A scan the motion gates kept from the matcher: placed by odometry from the last processed scan."""
+        self.skipped += 1
+        if self._last_odom is not None:
+            step = between(self._last_odom, np.asarray(odom_pose, float))
+            self._skipped_scans.append((float(stamp_s), self.slam.n_scans - 1, step))
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_s (N,), robot poses (N, 3)) of every scan fed, processed or skipped, in stamp order, from the
+        current graph (the trajectory ``zagv map build`` writes, and ``zagv map eval --trajectory`` reads)."""
+        stamps, poses = self.slam.trajectory() if self.slam.n_scans else (np.zeros(0), np.zeros((0, 3)))
+        if self._skipped_scans:
+            skipped_stamps = np.array([t for t, _, _ in self._skipped_scans])
+            anchors = np.array([k for _, k, _ in self._skipped_scans], dtype=np.intp)
+            steps = np.array([d for _, _, d in self._skipped_scans])
+            stamps = np.concatenate([stamps, skipped_stamps])
+            poses = np.vstack([poses, compose(poses[anchors], steps)])
+        order = np.argsort(stamps, kind="stable")
+        return stamps[order], poses[order].reshape(-1, 3)
 
     def pose_at(self, odom_pose: np.ndarray) -> np.ndarray | None:
         """Map pose for an odometry pose (``map_odom ∘ odom``); None before the first scan."""
