@@ -12,10 +12,11 @@ import pytest
 from PIL import Image
 
 from proto.messages import LaserScan, OccupancyGrid, Odometry, Pose2D, PoseWithCovariance, Transform2D, Twist2D
+from services.common.grid import grid_png
 from services.hmi_api import auth
 from services.hmi_api.jog import JogGate
 from services.hmi_api.posedb import SCHEMA_VERSION, PoseDb, PoseDbError, PoseNotFound
-from services.hmi_api.view import RobotView, VelocityRecorder, grid_png
+from services.hmi_api.view import RobotView, VelocityRecorder
 
 
 @pytest.fixture

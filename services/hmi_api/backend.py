@@ -37,13 +37,14 @@ from proto.messages import (
 )
 from services.common import auth
 from services.common.clock import Rate
+from services.common.grid import grid_png
 from services.common.node import Node
 from services.common.query import QueryError
 from services.common.robot import RobotSpec
 from services.hmi_api.config import HmiApiConfig
 from services.hmi_api.jog import JogGate
 from services.hmi_api.posedb import DB_FILE, PoseDb, PoseRecord
-from services.hmi_api.view import RobotView, VelocityRecorder, grid_png
+from services.hmi_api.view import RobotView, VelocityRecorder
 
 T = TypeVar("T")
 log = logging.getLogger("zagv.hmi_api")

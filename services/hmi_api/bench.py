@@ -22,9 +22,10 @@ from proto.messages import (
     WheelStates,
 )
 from services.common.bench import BenchRow, time_calls
+from services.common.grid import grid_png
 from services.hmi_api import auth
 from services.hmi_api.posedb import PoseDb
-from services.hmi_api.view import RobotView, grid_png
+from services.hmi_api.view import RobotView
 
 
 def _view() -> RobotView:

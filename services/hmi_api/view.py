@@ -10,7 +10,6 @@
 from __future__ import annotations
 
 import collections
-import io
 import math
 from dataclasses import dataclass, field
 
@@ -226,20 +225,3 @@ class VelocityRecorder:
         for r in self.rows:
             lines.append(",".join("" if not math.isfinite(v) else f"{v:.4f}" for v in r))
         return "\n".join(lines) + "\n"
-
-
-def grid_png(grid: OccupancyGrid) -> bytes:
-    """The map as a greyscale PNG, north up: row 0 of the image is the grid's last row (largest y).
-
-    Free (0) is white, occupied (100) black, unknown (-1) grey, values in between shaded linearly.
-    """
-    from PIL import Image
-
-    cells = np.frombuffer(grid.data, dtype="<i1")
-    if grid.width <= 0 or grid.height <= 0 or len(cells) != grid.width * grid.height:
-        raise ValueError(f"map has {len(cells)} cells for {grid.width}x{grid.height}")
-    cells = cells.reshape(grid.height, grid.width)
-    grey = np.where(cells < 0, 205, 254 - (np.clip(cells, 0, 100).astype(np.int32) * 254) // 100).astype(np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(grey[::-1], mode="L").save(buf, format="PNG", optimize=False)
-    return buf.getvalue()
