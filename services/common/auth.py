@@ -9,10 +9,12 @@ Run ``python -m services.common.auth hash`` (or ``python -m services.hmi_api.aut
 from __future__ import annotations
 
 import argparse
+import asyncio
 import base64
 import getpass
 import hashlib
 import hmac
+import logging
 import math
 import os
 import secrets
@@ -180,6 +182,51 @@ class LoginThrottle:
         while len(self._clients) > self.max_clients:
             del self._clients[next(iter(self._clients))]
         return record.count
+
+
+class LoginThrottled(RuntimeError):
+    """A client locked out after wrong passwords, or with an attempt still being checked: retry after
+    ``retry_after_s``."""
+
+    def __init__(self, retry_after_s: float, message: str) -> None:
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class PasswordLogin:
+    """Password login of one web service: per-client throttling, one scrypt at a time (guessing cannot take every
+    CPU), a bearer token for the right password."""
+
+    def __init__(self, password_hash: str, *, token_ttl_s: float, free_attempts: int, lockout_initial_s: float,
+                 lockout_max_s: float, log: logging.Logger) -> None:
+        self.password_hash = password_hash
+        self.tokens = TokenStore(ttl_s=token_ttl_s)
+        self.throttle = LoginThrottle(free_attempts=free_attempts, lockout_initial_s=lockout_initial_s,
+                                      lockout_max_s=lockout_max_s)
+        self._hashing = asyncio.Semaphore(1)
+        self._log = log
+
+    async def login(self, password: str, client: str) -> str | None:
+        """A token for the right password, None for a wrong one (logged with the client's address); raises
+        LoginThrottled while ``client`` is locked out or has an attempt being checked."""
+        wait_s = self.throttle.wait_s(client, time.monotonic())
+        if wait_s > 0:
+            if math.isinf(wait_s):
+                raise LoginThrottled(1.0, "a login from this client is being checked; try again in a moment")
+            raise LoginThrottled(wait_s, f"too many wrong passwords from this client; try again in {wait_s:.0f} s")
+        self.throttle.begin(client)
+        ok = False
+        try:
+            async with self._hashing:
+                loop = asyncio.get_running_loop()
+                ok = await loop.run_in_executor(None, verify_password, password, self.password_hash)
+        finally:
+            failures = self.throttle.end(client, ok, time.monotonic())
+        if not ok:
+            self._log.warning("login failed from %s (%d wrong password(s) in a row)", client, failures)
+            return None
+        self._log.info("login from %s", client)
+        return self.tokens.issue()
 
 
 def main(argv: list[str] | None = None, prog: str = "python -m services.common.auth") -> int:

@@ -38,6 +38,7 @@ from litestar.exceptions import (
 from litestar.static_files import create_static_files_router
 from litestar.status_codes import HTTP_200_OK
 
+from services.common.auth import LoginThrottled
 from services.common.web import (
     TOKEN_IN_QUERY,
     UndecodableBody,
@@ -46,7 +47,7 @@ from services.common.web import (
     security_layer,
     strict_body,
 )
-from services.fleet.backend import FleetBackend, LoginThrottled, RobotRejected, RobotUnavailable, UnknownRobot
+from services.fleet.backend import FleetBackend, RobotRejected, RobotUnavailable, UnknownRobot
 
 STATIC_DIR = Path(__file__).parent / "static"
 log = logging.getLogger("zagv.fleet")

@@ -6,10 +6,8 @@ Samples are decoded on Zenoh's threads and handed to the event loop; the FleetVi
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import logging
-import math
 import time
 import uuid
 from typing import Any
@@ -51,12 +49,6 @@ class UnknownRobot(LookupError):
     """No robot of that id has been heard at the site."""
 
 
-class LoginThrottled(RuntimeError):
-    def __init__(self, retry_after_s: float, message: str) -> None:
-        super().__init__(message)
-        self.retry_after_s = retry_after_s
-
-
 class FleetBackend:
     """State and actions behind the fleet view's HTTP API (one per process)."""
 
@@ -65,12 +57,10 @@ class FleetBackend:
         self.robot = robot
         self.config = config
         self.view = FleetView(own_id=node.keys.robot_id, robots_shown=list(config.robots), map_from=config.map_from)
-        self.tokens = auth.TokenStore(ttl_s=config.token_ttl_s)
-        self.throttle = auth.LoginThrottle(free_attempts=config.login_free_attempts,
-                                           lockout_initial_s=config.login_lockout_initial_s,
-                                           lockout_max_s=config.login_lockout_max_s)
-        self._hashing = asyncio.Semaphore(1)
-        self.password_hash = self._load_password()
+        self.password_login = auth.PasswordLogin(
+            self._load_password(), token_ttl_s=config.token_ttl_s, free_attempts=config.login_free_attempts,
+            lockout_initial_s=config.login_lockout_initial_s, lockout_max_s=config.login_lockout_max_s, log=log)
+        self.tokens = self.password_login.tokens
         self._map_png: tuple[int, bytes] | None = None
         session = node.session
         self._declared: list[Any] = [session.declare_subscriber(f"{ROOT}/*/{topic}", self._sample_handler(topic))
@@ -144,24 +134,7 @@ class FleetBackend:
 
     async def login(self, password: str, client: str) -> str | None:
         """A token for the right password, None for a wrong one; LoginThrottled while ``client`` is locked out."""
-        wait_s = self.throttle.wait_s(client, time.monotonic())
-        if wait_s > 0:
-            if math.isinf(wait_s):
-                raise LoginThrottled(1.0, "a login from this client is being checked; try again in a moment")
-            raise LoginThrottled(wait_s, f"too many wrong passwords from this client; try again in {wait_s:.0f} s")
-        self.throttle.begin(client)
-        ok = False
-        try:
-            async with self._hashing:
-                loop = asyncio.get_running_loop()
-                ok = await loop.run_in_executor(None, auth.verify_password, password, self.password_hash)
-        finally:
-            failures = self.throttle.end(client, ok, time.monotonic())
-        if not ok:
-            log.warning("login failed from %s (%d wrong password(s) in a row)", client, failures)
-            return None
-        log.info("login from %s", client)
-        return self.tokens.issue()
+        return await self.password_login.login(password, client)
 
     # ------------------------------------------------------------------ commands to one robot
 

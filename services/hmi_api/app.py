@@ -42,6 +42,7 @@ from litestar.openapi.spec import Components, SecurityScheme
 from litestar.static_files import create_static_files_router
 from litestar.status_codes import HTTP_200_OK
 
+from services.common.auth import LoginThrottled
 from services.common.web import (  # noqa: F401 - SECURITY_HEADERS is part of this module's interface
     SECURITY_HEADERS,
     TOKEN_IN_QUERY,
@@ -52,7 +53,7 @@ from services.common.web import (  # noqa: F401 - SECURITY_HEADERS is part of th
     strict_body,
 )
 from services.hmi_api import blackbox
-from services.hmi_api.backend import Backend, LoginThrottled, RobotRejected, RobotUnavailable
+from services.hmi_api.backend import Backend, RobotRejected, RobotUnavailable
 from services.hmi_api.posedb import NAME_MAX, PoseDbError, PoseListFull, PoseNotFound, PoseRecord
 
 STATIC_DIR = Path(__file__).parent / "static"

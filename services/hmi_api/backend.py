@@ -60,14 +60,6 @@ class RobotRejected(RuntimeError):
     """A robot service answered with a refusal; the message is its reason."""
 
 
-class LoginThrottled(RuntimeError):
-    """Too many wrong passwords from one client: it may try again after ``retry_after_s``."""
-
-    def __init__(self, retry_after_s: float, message: str) -> None:
-        super().__init__(message)
-        self.retry_after_s = retry_after_s
-
-
 class Backend:
     """State and actions behind the HTTP API (one per process)."""
 
@@ -77,17 +69,15 @@ class Backend:
         self.config = config
         self.view = RobotView()
         self.jog = JogGate(timeout_s=config.jog_timeout_s)
-        self.tokens = auth.TokenStore(ttl_s=config.token_ttl_s)
-        self.throttle = auth.LoginThrottle(free_attempts=config.login_free_attempts,
-                                           lockout_initial_s=config.login_lockout_initial_s,
-                                           lockout_max_s=config.login_lockout_max_s)
-        self._hashing = asyncio.Semaphore(1)  # one scrypt at a time: guessing cannot take every CPU
         self.recorder = VelocityRecorder(config.velocity_history_s, config.velocity_record_hz)
         self.state_dir = Path(config.state_dir).expanduser()
         self.state_dir.mkdir(parents=True, exist_ok=True)
         self._db_thread = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="posedb")
         self.db = PoseDb(self.state_dir / DB_FILE, max_poses=config.max_poses)
-        self.password_hash = self._load_password()
+        self.password_login = auth.PasswordLogin(
+            self._load_password(), token_ttl_s=config.token_ttl_s, free_attempts=config.login_free_attempts,
+            lockout_initial_s=config.login_lockout_initial_s, lockout_max_s=config.login_lockout_max_s, log=log)
+        self.tokens = self.password_login.tokens
         self._cmd_at_s = -math.inf
         self._map_png: tuple[int, bytes] | None = None
         self._cmd_pub = node.publisher("cmd_vel")
@@ -185,26 +175,8 @@ class Backend:
     # ------------------------------------------------------------------ login
 
     async def login(self, password: str, client: str) -> str | None:
-        """A token for the right password, None for a wrong one (logged with the client's address); raises
-        LoginThrottled while ``client`` is locked out or has an attempt being checked."""
-        wait_s = self.throttle.wait_s(client, time.monotonic())
-        if wait_s > 0:
-            if math.isinf(wait_s):
-                raise LoginThrottled(1.0, "a login from this client is being checked; try again in a moment")
-            raise LoginThrottled(wait_s, f"too many wrong passwords from this client; try again in {wait_s:.0f} s")
-        self.throttle.begin(client)
-        ok = False
-        try:
-            async with self._hashing:
-                loop = asyncio.get_running_loop()
-                ok = await loop.run_in_executor(None, auth.verify_password, password, self.password_hash)
-        finally:
-            failures = self.throttle.end(client, ok, time.monotonic())
-        if not ok:
-            log.warning("login failed from %s (%d wrong password(s) in a row)", client, failures)
-            return None
-        log.info("login from %s", client)
-        return self.tokens.issue()
+        """A token for the right password, None for a wrong one; LoginThrottled while ``client`` is locked out."""
+        return await self.password_login.login(password, client)
 
     # ------------------------------------------------------------------ database
 
