@@ -122,24 +122,6 @@ def test_pending_closure_needs_a_consistent_partner():
     assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
 
 
-def test_ambiguous_match_keeps_the_candidate_nearest_the_odometry():
-    """Along a corridor or a row of doors, candidates one period apart score nearly alike: the one nearest the
-    odometry wins unless another beats it clearly (a real wheel slip), and a weak match far from the odometry falls
-    back to it."""
-    from services.localization.slam.matcher import MatchResult
-
-    slam = GraphSlam()
-    predicted = np.array([5.0, 1.0, 0.0])
-    info = slam._motion_prior(np.array([1.0, 0.0, 0.0]))
-    near = MatchResult(np.array([5.02, 1.0, 0.0]), 0.60, np.eye(3))
-    alias = MatchResult(np.array([5.62, 1.0, 0.0]), 0.63, np.eye(3))  # one door further, marginally better
-    assert slam._least_surprising([alias, near], predicted, info) is near
-    slip = MatchResult(np.array([5.3, 1.1, 0.02]), 0.75, np.eye(3))  # clearly better: odometry slipped
-    assert slam._least_surprising([near, slip, alias], predicted, info) is slip
-    assert slam._mahalanobis(alias.pose, predicted, info) > slam.config.weak_match_max_mahalanobis
-    assert slam._mahalanobis(near.pose, predicted, info) < 1.0
-
-
 @pytest.mark.timeout(900)  # two SLAM runs over 150 scans: ~8 s of CPU
 def test_mount_offset_does_not_change_the_result(logs_dir):
     """The same scans re-expressed for a laser 0.25 m ahead and 0.05 m left of the robot frame, and the

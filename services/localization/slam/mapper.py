@@ -5,14 +5,11 @@ multi-resolution likelihood grid, with the odometry prediction as a prior). A po
 correlative search over a window scaled to the odometry increment (x, y: ``rescue_window_xy_m +
 rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad + 0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``; its candidates
 are refined under an odometry prior of spread σ = σ₀ + k·‖Δt‖), so a wheel slip or an odometry jump is searched
-for, not trusted. Candidates scoring within ``match_ambiguity_score`` of the best are equally plausible (a corridor,
-a row of doors): the one nearest the odometry prediction (Mahalanobis distance under that prior) is kept, so a
-match far from the odometry must be clearly better than the near ones. A match whose score stays below
-``min_match_score`` fails the quality gate: below ``weak_match_score``, or when a weak match lies more than
-``weak_match_max_mahalanobis`` from the prediction, the pose falls back to the odometry prediction, and in both cases
-the keyframe edge gets the odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``, σ_θ =
-``fallback_sigma_theta_rad + odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a scan match's, so
-the back end knows that stretch is only dead-reckoned.
+for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: below
+``weak_match_score`` the pose falls back to the odometry prediction, and in both cases the keyframe edge gets the
+odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad +
+odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a scan match's, so the back end knows that
+stretch is only dead-reckoned.
 
 A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous keyframe by the matched
 relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path); it is matched
@@ -67,8 +64,6 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     rescue_window_theta_rad: float = 0.25
     rescue_theta_per_m: float = 0.05
     fast_turn_rad: float = 0.15
-    match_ambiguity_score: float = 0.05
-    weak_match_max_mahalanobis: float = 3.0
     odom_prior_sigma_xy_per_m: float = 0.1
     odom_prior_sigma_theta_per_m: float = 0.05
     fallback_sigma_xy_m: float = 0.1
@@ -254,43 +249,27 @@ class GraphSlam:
         if result.score >= max(c.min_match_score, c.rescue_below_score) and abs(turn_rad) < c.fast_turn_rad:
             return result.pose, True
         # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search a window scaled to
-        # the odometry increment; candidates are refined under a prior whose spread grows with the increment, and
-        # among near-equal candidates the one nearest the odometry is kept (``_least_surprising``)
-        prior = self._motion_prior(step)
+        # the odometry increment; candidates are refined with a prior whose spread grows with the increment, so
+        # a large (possibly wrong) odometry step cannot pull the match back
         window_theta = c.rescue_window_theta_rad + 0.5 * abs(turn_rad) + c.rescue_theta_per_m * dist
         window_xy = c.rescue_window_xy_m + c.rescue_window_per_m * dist
         candidates = correlative_search(self._submap.levels[-1], points, predicted,
                                         window_xy_m=window_xy, window_theta_rad=window_theta,
                                         theta_step_rad=0.02, n_best=3)
-        trials = [result] + [refine(self._submap, points, pose, prior_pose=predicted, prior_information=prior)
-                             for _, pose in candidates]
-        best = self._least_surprising(trials, predicted, prior)
+        best = result
+        for _, pose in candidates:
+            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step))
+            if trial.score > best.score + 0.02:
+                best = trial
         if best.score >= c.min_match_score:
             if best is not result:
                 self.rescued_matches += 1
             return best.pose, True
-        if best.score >= c.weak_match_score and \
-                self._mahalanobis(best.pose, predicted, prior) <= c.weak_match_max_mahalanobis:
-            self.weak_matches += 1  # weak but usable and near the odometry: kept, with the odometry's covariance
+        if best.score >= c.weak_match_score:  # weak but usable: kept, with the odometry's covariance
+            self.weak_matches += 1
             return best.pose, False
         self.fallback_matches += 1
         return predicted, False
-
-    @staticmethod
-    def _mahalanobis(pose: np.ndarray, predicted: np.ndarray, information: np.ndarray) -> float:
-        """√(dᵀΛd) of d = pose − predicted (angle wrapped) under the motion prior's information Λ."""
-        d = np.asarray(pose, float) - predicted
-        d[2] = wrap_angle(d[2])
-        return float(np.sqrt(d @ information @ d))
-
-    def _least_surprising(self, trials: list[MatchResult], predicted: np.ndarray,
-                          information: np.ndarray) -> MatchResult:
-        """Among matches scoring within ``match_ambiguity_score`` of the best, the one nearest the odometry
-        prediction (Mahalanobis under the motion prior): a match far from the odometry must beat the near ones
-        clearly, so a corridor or a row of doors (scores nearly equal along it) cannot pull the pose away."""
-        top = max(t.score for t in trials)
-        near = [t for t in trials if t.score >= top - self.config.match_ambiguity_score]
-        return min(near, key=lambda t: self._mahalanobis(t.pose, predicted, information))
 
     def _sequential_information(self) -> np.ndarray:
         """Scan-match information, or the odometry's when part of the edge was dead-reckoned (quality gate)."""
