@@ -145,6 +145,25 @@ def test_a_goal_nav_calls_succeeded_six_metres_away_is_not_reached() -> None:
     assert bench["scenario.suite_claimed_outside"] == 1 and bench["nav.time_per_metre_s"] == pytest.approx(5.0)
 
 
+def test_on_a_built_map_the_maps_own_drift_is_allowed_but_nav_must_reach_the_goal_in_that_map() -> None:
+    """World error 0.06 m (the built map lies 0.05 m off there) with the estimate 0.01 m from the target: reached
+    with a 0.10 m allowance, not without; a robot 0.04 m off in the built map's own frame is not reached either."""
+    drifted = {"error": [0.0, 0.06, 0.0], "time_s": 20.0, "map_frame_error": [0.0, 0.01, 0.0]}
+    judge_leg(drifted, "succeeded", "", _leg([(0, 0), (4, 0)]), 0, 0.05, 0.05)
+    assert drifted["reached"] is False
+    judge_leg(drifted, "succeeded", "", _leg([(0, 0), (4, 0)]), 0, 0.05, 0.05, 0.10)
+    assert drifted["reached"] is True
+    off_in_map = {"error": [0.0, 0.03, 0.0], "time_s": 20.0, "map_frame_error": [0.0, 0.07, 0.0]}
+    judge_leg(off_in_map, "succeeded", "", _leg([(0, 0), (4, 0)]), 0, 0.05, 0.05, 0.10)
+    assert off_in_map["reached"] is False
+    too_far = {"error": [0.0, 0.16, 0.0], "time_s": 20.0, "map_frame_error": [0.0, 0.0, 0.0]}
+    judge_leg(too_far, "succeeded", "", _leg([(0, 0), (4, 0)]), 0, 0.05, 0.05, 0.10)
+    assert too_far["reached"] is False
+    no_estimate = {"error": [0.0, 0.0, 0.0], "time_s": 20.0}
+    judge_leg(no_estimate, "succeeded", "", _leg([(0, 0), (4, 0)]), 0, 0.05, 0.05, 0.10)
+    assert no_estimate["reached"] is False
+
+
 # --------------------------------------------------------------------------- scans in time
 
 

@@ -28,11 +28,13 @@ class DynamicObstacle:
 
 @dataclass
 class Mapping:
-    """The ``[mapping]`` table: the jog route, the saved map's name and the jog speed."""
+    """The ``[mapping]`` table: the jog route, the saved map's name, the jog speed and how far the built map itself
+    may lie from the world at a goal (added to the goal tolerance when goals are judged against the ground truth)."""
 
     route: list[tuple[float, float, float]]
     save_as: str
     jog_speed_mps: float
+    map_error_allowance_m: float = 0.0
 
 
 @dataclass
@@ -67,9 +69,10 @@ def _mapping(raw: Any, p: Path, name: str) -> Mapping:
 
     if not isinstance(raw, dict):
         raise ScenarioError(f"{p}: mapping must be a table ([mapping]), got {raw!r}")
-    extra = sorted(set(raw) - {"route", "save_as", "jog_speed_mps"})
+    extra = sorted(set(raw) - {"route", "save_as", "jog_speed_mps", "map_error_allowance_m"})
     if extra:
-        raise ScenarioError(f"{p}: mapping: unknown key(s) {', '.join(extra)}; known: jog_speed_mps, route, save_as")
+        raise ScenarioError(f"{p}: mapping: unknown key(s) {', '.join(extra)}; known: jog_speed_mps, "
+                            "map_error_allowance_m, route, save_as")
     route_raw = raw.get("route")
     if not isinstance(route_raw, list) or not route_raw:
         raise ScenarioError(f"{p}: mapping.route must be a non-empty list of [x, y, theta] waypoints, got "
@@ -86,7 +89,10 @@ def _mapping(raw: Any, p: Path, name: str) -> Mapping:
     if isinstance(speed, bool) or not isinstance(speed, int | float) or not 0 < speed <= limit:
         raise ScenarioError(f"{p}: mapping.jog_speed_mps must be a number in (0, {limit:g}] (the robot's vx_max_mps "
                             f"and vy_max_mps), got {speed!r}")
-    return Mapping(route, save_as, float(speed))
+    allowance = raw.get("map_error_allowance_m", 0.0)
+    if isinstance(allowance, bool) or not isinstance(allowance, int | float) or not 0 <= allowance <= 1.0:
+        raise ScenarioError(f"{p}: mapping.map_error_allowance_m must be a number in [0, 1] (m), got {allowance!r}")
+    return Mapping(route, save_as, float(speed), float(allowance))
 
 
 def load_scenario(path: str | Path) -> Scenario:
