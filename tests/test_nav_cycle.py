@@ -136,3 +136,17 @@ def test_a_pose_jump_clears_the_obstacle_layers_and_a_requested_update_reaches_t
     cycle.on_localization_reply(True)
     cycle.on_pose(2.0, pose_msg(2.0, 2.0, 3.0, 0.0))
     assert nav.goal.loc_updated and nav.goal.loc_updated_at == 2.0
+
+
+def test_a_fresh_estimate_arriving_before_the_nomotion_reply_is_taken():
+    cfg = NavConfig()
+    nav, tracker = free_room(), tracked(0.0)
+    cycle = NavCycle(cfg, nav, tracker, 0.0)
+    nav.start_goal(0.0, (6.0, 3.0, 0.0), "g1")
+    assert nav.goal is not None
+    nav.goal.loc_requested_at = 0.0
+    cycle.expect_localization_update()
+    cycle.on_pose(1.0, pose_msg(1.0, 2.0, 3.0, 0.0))  # the pose beats the reply
+    cycle.on_localization_reply(True)
+    assert nav.goal.loc_updated and nav.goal.loc_updated_at == 1.0
+    assert not cycle.awaiting_localization  # not re-armed by the late reply

@@ -132,17 +132,30 @@ def format_table(summary: list[dict]) -> str:
 # --------------------------------------------------------------------------- running
 
 
+async def query_until(c: Client, name: str, req: m.Message, deadline_s: float) -> Any:
+    """``c.query`` asked again while nothing answers (a service busy relocalizing on a loaded machine), until
+    ``deadline_s`` of wall time; the last QueryError then."""
+    deadline = time.monotonic() + deadline_s
+    while True:
+        try:
+            return await c.query(name, req)
+        except QueryError:
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.5)
+
+
 async def place_robot(c: Client, pose: tuple[float, float, float]) -> None:
     """Teleport the simulated robot and tell localization where it is; wait for the estimate to agree."""
     await wait_until(lambda: c.odom_count > 5, "no odometry (is drive running and its CAN link up?)", 90.0)
     p = m.Pose2D(x=pose[0], y=pose[1], theta=pose[2])
-    r = await c.query("sim/teleport", m.TeleportRequest(pose=p))
+    r = await query_until(c, "sim/teleport", m.TeleportRequest(pose=p), 60.0)
     if not r.ok:
         raise RuntimeError(f"sim/teleport refused: {r.message}")
     await c.sim_sleep(1.0)  # scans taken before the jump are through the pipeline
     cov = [0.0025, 0, 0, 0, 0.0025, 0, 0, 0, 0.003]
     for attempt in range(1, 7):
-        r = await c.query("localization/initial_pose", m.InitialPoseRequest(pose=p, covariance=cov))
+        r = await query_until(c, "localization/initial_pose", m.InitialPoseRequest(pose=p, covariance=cov), 60.0)
         if not r.ok:
             raise RuntimeError(f"localization/initial_pose refused: {r.message}")
         count_at_set = c.pose_count

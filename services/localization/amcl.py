@@ -31,8 +31,10 @@ import msgspec
 import numpy as np
 from scipy import ndimage
 
+from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.se2 import compose, inverse, wrap_angle
 from services.localization.map_io import FREE, UNKNOWN, OccupancyMap
+from services.localization.refine import BeamModel, Refinement, refine_pose
 
 #: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg
 BIN_XY_M = 0.5
@@ -66,9 +68,9 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     z_rand: float = 0.1
     sigma_hit: float = 0.1
     laser_likelihood_max_dist: float = 2.0
-    #: beams ending in unknown cells score as if they ended this far (m) from an obstacle; < 0: as Nav2 (only the
-    #: distance to occupied cells counts, so a pose that puts unexplained beams into unknown space is punished
-    #: for every one of them)
+    #: beams ending in unknown cells score as if they ended at most this far (m) from an obstacle, and free space's
+    #: edge with unknown space is a surface; < 0: as Nav2 (only the distance to occupied cells counts, so a pose
+    #: that puts unexplained beams into unknown space is punished for every one of them)
     unknown_distance_m: float = 0.2
     laser_min_range: float = -1.0
     laser_max_range: float = -1.0
@@ -180,6 +182,27 @@ def kld_limit(k: int, pf_err: float, pf_z: float, min_particles: int, max_partic
     return min(max(n, min_particles), max_particles)
 
 
+def _corner_any_all(cells: np.ndarray, pad: bool) -> tuple[np.ndarray, np.ndarray]:
+    """For each cell corner (height + 1, width + 1): whether any / all of its four cells are set (``pad``: the cells
+    beyond the map count as set)."""
+    padded = np.pad(cells, 1, constant_values=pad)
+    quads = (padded[:-1, :-1], padded[1:, :-1], padded[:-1, 1:], padded[1:, 1:])
+    return quads[0] | quads[1] | quads[2] | quads[3], quads[0] & quads[1] & quads[2] & quads[3]
+
+
+def _surface_distance(surface: np.ndarray, resolution: float, max_dist: float, less_half_cell: bool = True
+                      ) -> np.ndarray:
+    """Distance (m, capped at ``max_dist``) from each corner to the nearest ``surface`` corner, by default less half a
+    cell, as amcl's per-cell field effectively has: the next corners score as a hit half a cell off, which keeps the
+    field as forgiving (and a recovering filter as able to find the robot) when looked up at the nearest corner."""
+    if not surface.any():
+        return np.full(surface.shape, max_dist)
+    d = ndimage.distance_transform_edt(~surface) * resolution
+    if less_half_cell:
+        d = np.maximum(d - 0.5 * resolution, 0.0)
+    return np.minimum(d, max_dist)
+
+
 class LikelihoodField:
     """Per-corner ``pz^3`` (``likelihood_field``) or ``log pz`` (``likelihood_field_prob``), padded by one corner
     that holds the beyond-the-map value.
@@ -197,35 +220,48 @@ class LikelihoodField:
         self.grid = grid
         occupied = grid.data >= OCCUPIED_MIN
         # the four cells around each corner; beyond the map counts as occupied (no surface along the map edge)
-        padded = np.pad(occupied, 1, constant_values=True)
-        quads = (padded[:-1, :-1], padded[1:, :-1], padded[:-1, 1:], padded[1:, 1:])
-        any_occupied = quads[0] | quads[1] | quads[2] | quads[3]
-        all_occupied = quads[0] & quads[1] & quads[2] & quads[3]
-        surface = any_occupied & ~all_occupied  # (height + 1, width + 1) corners
-        if surface.any():
-            # less half a cell, as amcl's per-cell field effectively has: the next corners score as a hit half a
-            # cell off, which keeps the field as forgiving (and a recovering filter as able to find the robot)
-            dist_m = np.maximum(ndimage.distance_transform_edt(~surface) * grid.resolution - 0.5 * grid.resolution,
-                                0.0)
-        else:
-            dist_m = np.full(surface.shape, np.inf)
+        occupied_any, occupied_all = _corner_any_all(occupied, pad=True)
+        #: distance (m) from each corner to the nearest surface of an occupied cell (where it meets a cell that is
+        #: not occupied)
+        self._occupied_surface = occupied_any & ~occupied_all
+        self.obstacle_distance_m = _surface_distance(self._occupied_surface, grid.resolution,
+                                                     params.laser_likelihood_max_dist)
         self.max_dist = params.laser_likelihood_max_dist
-        self.distance_m = np.minimum(dist_m, self.max_dist)
-        #: distance (m) from each corner to the nearest obstacle surface, and whether an unknown cell touches it
-        self.obstacle_distance_m = self.distance_m
-        unknown_cells = np.pad(grid.data == UNKNOWN, 1, constant_values=False)
-        self.near_unknown = (unknown_cells[:-1, :-1] | unknown_cells[1:, :-1] | unknown_cells[:-1, 1:]
-                             | unknown_cells[1:, 1:])
+        free, unknown = grid.data == FREE, grid.data == UNKNOWN
+        free_any, _ = _corner_any_all(free, pad=False)
+        unknown_any, _ = _corner_any_all(unknown, pad=False)
+        #: corners with an unknown cell among their four (map-edge padding excluded)
+        self.near_unknown = unknown_any
+        #: distance (m) from each corner to the nearest edge of free space where it meets unknown space
+        self._edge_surface = free_any & unknown_any
+        self.edge_distance_m = _surface_distance(self._edge_surface, grid.resolution, self.max_dist)
         if params.unknown_distance_m >= 0.0:
-            # a beam that ends in space the map never saw is no evidence against the pose: score it as a beam that
-            # ends unknown_distance_m from a wall (corners with an unknown cell among their four; map-edge padding
-            # excluded), never worse than its own distance
-            self.distance_m = np.where(self.near_unknown, np.minimum(self.distance_m, params.unknown_distance_m),
-                                       self.distance_m)
+            # A SLAM map draws a wall as occupied cells only where its beams hit it often enough; elsewhere (grazing
+            # angles, dark or thin surfaces, the map's outline) known free space simply ends where the beams ended.
+            # That edge is a surface too: a beam ending on it is explained. A beam ending deeper in space the map
+            # never saw is no evidence against the pose: it scores as one ending unknown_distance_m from a wall.
+            # Without the edge, the few beams that pin a pose along a corridor can prefer a pose 0.15 m off the
+            # truth (one beam on such an edge, scored at unknown_distance_m, outweighed the rest).
+            d = np.minimum(self.obstacle_distance_m, self.edge_distance_m)
+            self.distance_m = np.where(self.near_unknown, np.minimum(d, params.unknown_distance_m), d)
+        else:
+            self.distance_m = self.obstacle_distance_m
         self.params = params
         self._range_max: float | None = None
         self.table = np.empty((grid.height + 3, grid.width + 3), dtype=np.float32)
         self.flat = self.table.reshape(-1)
+
+    def exact_distance_m(self) -> np.ndarray:
+        """The field's distances (m) without the half-cell allowance, for interpolation between corners (computed on
+        first use): exact distance to the nearest surface, capped like ``distance_m``."""
+        if getattr(self, "_exact", None) is None:
+            res, cap, p = self.grid.resolution, self.max_dist, self.params
+            d = _surface_distance(self._occupied_surface, res, cap, less_half_cell=False)
+            if p.unknown_distance_m >= 0.0:
+                d = np.minimum(d, _surface_distance(self._edge_surface, res, cap, less_half_cell=False))
+                d = np.where(self.near_unknown, np.minimum(d, p.unknown_distance_m), d)
+            self._exact = d.astype(np.float32)
+        return self._exact
 
     def prepare(self, range_max: float) -> None:
         """(Re)build the table for a sensor whose maximum range is ``range_max`` m (z_rand's density)."""
@@ -261,10 +297,17 @@ class ParticleFilter:
 
     def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None) -> None:
         params.validate()
+        if abs(grid.origin[2]) >= YAW_EPS_RAD:
+            # a yawed map is resampled onto the axis-aligned raster that nav's costmaps use (services/common/grid.py),
+            # so that localization and planning see the walls in the same cells
+            data, x0, y0 = axis_aligned(grid.data, grid.resolution, grid.origin, fill=UNKNOWN)
+            grid = OccupancyMap(data, grid.resolution, (x0, y0, 0.0))
         self.grid = grid
         self.params = params
         self.rng = rng or np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
         self.field = LikelihoodField(grid, params)
+        #: occupied cells of the map (the refinement's pass-through check)
+        self.occupied = grid.data >= OCCUPIED_MIN
         free_rows, free_cols = np.nonzero(grid.data == FREE)
         if free_rows.size == 0:
             raise ValueError("the map has no free cell to place particles in")
@@ -373,10 +416,10 @@ class ParticleFilter:
     def explained_fraction(self, pose: tuple[float, float, float], ranges: np.ndarray, bearings: np.ndarray,
                            mount: tuple[float, float, float]) -> float:
         """Scan match score at ``pose``: hits / (hits + misses) over the beams, where a hit ends within
-        ``match_distance_m`` of an obstacle (the field's distance at the nearest corner) and a miss ends in known
-        space farther from any (or beyond the map). Beams that end in unknown cells are neither: the map cannot
-        say (on a real SLAM map most beams of a campus end there). NaN when fewer than ``match_min_beams`` beams
-        are hits or misses."""
+        ``match_distance_m`` of an obstacle or of free space's edge with unknown space (the field's distances at
+        the nearest corner) and a miss ends in known space farther from any (or beyond the map). Beams that end in
+        unknown cells are neither: the map cannot say (on a real SLAM map most beams of a campus end there). NaN
+        when fewer than ``match_min_beams`` beams are hits or misses."""
         if ranges.size == 0:
             return math.nan
         grid = self.grid
@@ -390,7 +433,9 @@ class ParticleFilter:
         inside = (gx >= 0) & (gx < dist.shape[1]) & (gy >= 0) & (gy < dist.shape[0])
         hits = np.zeros(ranges.size, dtype=bool)
         unknown = np.zeros(ranges.size, dtype=bool)
-        hits[inside] = self.field.obstacle_distance_m[gy[inside], gx[inside]] <= self.params.match_distance_m
+        surface_m = np.minimum(self.field.obstacle_distance_m[gy[inside], gx[inside]],
+                               self.field.edge_distance_m[gy[inside], gx[inside]])
+        hits[inside] = surface_m <= self.params.match_distance_m
         unknown[inside] = self.field.near_unknown[gy[inside], gx[inside]] & ~hits[inside]
         judged = int(ranges.size - np.count_nonzero(unknown))
         if judged < self.params.match_min_beams:
@@ -714,15 +759,16 @@ class ScanBeams:
 
 
 def select_beams(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,
-                 range_max: float, params: AmclParams) -> ScanBeams:
-    """Subsample a scan (Nav2's step) and keep finite returns inside (range_min, range_max).
+                 range_max: float, params: AmclParams, max_beams: int | None = None) -> ScanBeams:
+    """Subsample a scan (Nav2's step, for ``max_beams``: default the params') and keep finite returns inside
+    (range_min, range_max).
 
     ``laser_min_range``/``laser_max_range`` > 0 override the scan's limits (as in Nav2).
     """
     ranges = np.asarray(ranges, dtype=np.float64)
     lo = params.laser_min_range if params.laser_min_range > 0 else range_min
     hi = params.laser_max_range if params.laser_max_range > 0 else range_max
-    idx = beam_indices(ranges.size, params.max_beams)
+    idx = beam_indices(ranges.size, params.max_beams if max_beams is None else max_beams)
     r = ranges[idx]
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(r) & (r > lo) & (r < hi)
@@ -769,6 +815,9 @@ class Amcl:
         self._stage = -1  # -1: none; 0..local_recovery_attempts-1: local resets; local_recovery_attempts: global
         self._stage_started_at = 0.0
         self._updates_since_reset = 0
+        #: a refinement waits for the next update (request_nomotion_update(refine=True))
+        self.refine_pending = False
+        self.last_refinement: Refinement | None = None
 
     def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None) -> None:
         """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2)."""
@@ -786,8 +835,12 @@ class Amcl:
         self._reinitialised()
         self._set_state("localizing", "global localization")
 
-    def request_nomotion_update(self) -> None:
+    def request_nomotion_update(self, refine: bool = False) -> None:
+        """Update on the next scan without motion; with ``refine`` (the robot stands still and a precise pose is
+        wanted) that update is followed by the dense scan-to-map refinement (services/localization/refine.py)
+        when ``process`` gets the scan's dense beams."""
         self.force_update = True
+        self.refine_pending = self.refine_pending or refine
 
     def reanchor_odometry(self) -> None:
         """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
@@ -808,9 +861,11 @@ class Amcl:
         self.pf.allow_injection = state != "tracking" or self.params.inject_while_tracking
 
     def process(self, odom_pose: tuple[float, float, float], beams: ScanBeams,
-                mount: tuple[float, float, float], stamp: float | None = None) -> bool:
+                mount: tuple[float, float, float], stamp: float | None = None, dense: ScanBeams | None = None
+                ) -> bool:
         """One scan at ``stamp`` (s; None: DEFAULT_SCAN_PERIOD_S after the last): motion + sensor update
-        (+ resampling) when the gates open, then the verdict; returns whether the filter updated."""
+        (+ resampling) when the gates open, then the verdict; returns whether the filter updated. ``dense``: every
+        valid beam of the scan, for a pending refinement."""
         self._now = self._now + self.DEFAULT_SCAN_PERIOD_S if stamp is None else float(stamp)
         p = self.params
         if self.state != "tracking" and self._now - self._last_update_at >= p.recovery_update_period_s:
@@ -836,12 +891,38 @@ class Amcl:
             self.spread_m = self.estimate.spread_m
             if self.resample_count % self.params.resample_interval == 0:
                 self.pf.resample()
+            if self.refine_pending and dense is not None:
+                self.refine_pending = False
+                self._refine(dense, mount)
             self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
             self.updates += 1
             self._updates_since_reset += 1
         if self.map_odom is not None:
             self._judge(compose(self.map_odom, odom_pose), beams, mount)
         return update
+
+    def _refine(self, dense: ScanBeams, mount: tuple[float, float, float]) -> None:
+        """Move the estimate (and every particle with it) to the dense scan's maximum-likelihood pose nearby, when
+        the filter is tracking (a lost or localizing filter has no estimate worth polishing)."""
+        est = self.estimate
+        if est is None or self.state != "tracking":
+            return
+        grid = self.pf.grid
+        p = self.params
+        model = BeamModel(p.z_hit, p.z_rand / dense.range_max if dense.range_max > 0 else 0.0, p.sigma_hit,
+                          self.pf.field.max_dist)
+        r = refine_pose(self.pf.field.exact_distance_m(), grid.origin, grid.resolution, model, est.pose,
+                        est.covariance, dense.ranges, dense.bearings, mount, occupied=self.pf.occupied)
+        self.last_refinement = r
+        if not r.used:
+            return
+        dx, dy = r.pose[0] - est.pose[0], r.pose[1] - est.pose[1]
+        dth = float(wrap_angle(r.pose[2] - est.pose[2]))
+        n = self.pf.n
+        self.pf.poses[:n, 0] += dx
+        self.pf.poses[:n, 1] += dy
+        self.pf.poses[:n, 2] = wrap_angle(self.pf.poses[:n, 2] + dth)
+        self.estimate = Estimate(r.pose, est.covariance, est.weight, est.particles, est.spread_m)
 
     def _judge(self, pose: tuple[float, float, float], beams: ScanBeams, mount: tuple[float, float, float]) -> None:
         """Score the scan at the map pose, then move the verdict and the recovery on."""

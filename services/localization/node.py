@@ -241,8 +241,12 @@ class LocalizationNode:
         else:
             r = self.ctx.robot
             mount = (r.laser_mount_x_m, r.laser_mount_y_m, r.laser_mount_theta_rad)
+        dense = None
+        if self.amcl.refine_pending:  # every valid beam, for the refinement at rest
+            dense = select_beams(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
+                                 self.amcl.params, max_beams=ranges.size)
         before = self.amcl.state
-        updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp)
+        updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp, dense)
         changed = self.amcl.state != before
         if changed:
             self._on_verdict(before)
@@ -358,5 +362,5 @@ class LocalizationNode:
         assert self.amcl is not None
         if not self.initialised:
             return Reply(ok=False, message="not localized yet: set an initial pose or start global localization")
-        self.amcl.request_nomotion_update()
-        return Reply(ok=True, message="the next scan updates the filter without motion")
+        self.amcl.request_nomotion_update(refine=True)
+        return Reply(ok=True, message="the next scan updates the filter without motion and refines the pose")

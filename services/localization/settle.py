@@ -72,11 +72,12 @@ class AtRestSettler:
         return (math.hypot(odom_pose[0] - last[0], odom_pose[1] - last[1]) <= p.rest_m
                 and abs(float(wrap_angle(odom_pose[2] - last[2]))) <= p.rest_rad)
 
-    def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose, stamp: float | None = None) -> bool:
+    def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose, stamp: float | None = None,
+                dense: ScanBeams | None = None) -> bool:
         """One scan (at ``stamp``): a jittered no-motion update at rest, plain AMCL when moving; returns whether
-        the filter updated."""
+        the filter updated. ``dense`` goes to ``Amcl.process`` (a pending refinement)."""
         if self.converged:
-            return amcl.process(odom_pose, beams, mount, stamp)
+            return amcl.process(odom_pose, beams, mount, stamp, dense)
         if not self.at_rest(odom_pose):
             self._recent.clear()
             return amcl.process(odom_pose, beams, mount, stamp)

@@ -55,6 +55,7 @@ class NavCycle:
         self.untrusted_since: float | None = None
         self.last_scan_at = -float("inf")
         self.awaiting_localization = False
+        self._request_open = False  # a nomotion request was sent and its reply has not come back
         self._status_signature: tuple[object, ...] = ()
 
     def start(self, now: float) -> None:
@@ -95,10 +96,19 @@ class NavCycle:
             self.awaiting_localization = False
             self.nav.localization_updated(now)
 
+    def expect_localization_update(self) -> None:
+        """Called before asking localization/nomotion: the fresh estimate can arrive before the reply does (it was
+        then missed, and nav waited for a pose that never came)."""
+        self.awaiting_localization = True
+        self._request_open = True
+
     def on_localization_reply(self, ok: bool) -> None:
         """localization/nomotion accepted (the next pose is the fresh estimate) or not."""
-        if ok:
+        if not ok:
+            self.awaiting_localization = False
+        elif not self._request_open:
             self.awaiting_localization = True
+        self._request_open = False
 
     # ------------------------------------------------------------------ the cycle
 

@@ -566,9 +566,11 @@ class Navigator:
                 g.loc_updates += 1
                 g.loc_requested_at = None
                 if not g.loc_updated:
-                    g.loc_updates = cfg.final_localization_updates  # no localization answering: judge now
-                elif not fine_done:
-                    g.settled_since = None  # the fresh estimate is off: correct again
+                    g.loc_updates = cfg.final_localization_updates  # no localization answering: no more requests
+                if not fine_done:
+                    # the estimate moved (a fresh update, or one whose answer nav missed but whose map->odom
+                    # arrived): correct again before judging, never judge a pose that was not corrected to
+                    g.settled_since = None
                     return (0.0, 0.0, 0.0)
             if within_tol:
                 self._finish("succeeded", "", now, pose)

@@ -92,9 +92,11 @@ class NavService:
             self.log.info("%s", line)
 
     async def request_localization_update(self) -> None:
+        self.cycle.expect_localization_update()
         try:
             reply = await self.node.query("localization/nomotion", m.Empty(), timeout_s=1.0)
         except QueryError as exc:
+            self.cycle.on_localization_reply(False)
             self.log.info("no localization update at the goal: %s", exc)
             return
         self.cycle.on_localization_reply(reply.ok)

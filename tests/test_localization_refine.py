@@ -1,0 +1,157 @@
+"""Real-map sensor-model pieces: free space's edge with unknown space as a surface, the dense refinement at rest
+(its prior along directions the scan does not pin, its pass-through check on thick walls), yawed maps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from services.localization.amcl import Amcl, AmclParams, ParticleFilter, ScanBeams, select_beams
+from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+from services.localization.realmap import MOUNT, GridLaser
+from services.localization.refine import BeamModel, refine_pose
+
+RES = 0.05
+
+
+def hall(edge_unknown: bool, wall_cells: int = 1) -> OccupancyMap:
+    """A 10 m x 4 m hall: occupied side walls ``wall_cells`` thick; its west end is occupied, or (``edge_unknown``)
+    free space simply ends there against unknown space, as on a SLAM map; an occupied pillar in it."""
+    data = np.full((120, 300), UNKNOWN, dtype=np.int8)
+    data[20:100, 50:250] = FREE
+    data[20 - wall_cells:20, 50 - wall_cells:250 + wall_cells] = OCCUPIED
+    data[100:100 + wall_cells, 50 - wall_cells:250 + wall_cells] = OCCUPIED
+    data[20:100, 250:250 + wall_cells] = OCCUPIED
+    if not edge_unknown:
+        data[20:100, 50 - wall_cells:50] = OCCUPIED
+    data[70:76, 180:186] = OCCUPIED
+    return OccupancyMap(data, RES, (0.0, 0.0, 0.0))
+
+
+def dense_beams(laser: GridLaser, pose: tuple[float, float, float], params: AmclParams, max_beams: int
+                ) -> ScanBeams:
+    return select_beams(laser.scan(pose), laser.angle_min, laser.angle_increment, laser.range_min, laser.range_max,
+                        params, max_beams=max_beams)
+
+
+def test_free_space_edge_against_unknown_is_a_surface():
+    grid = hall(edge_unknown=True)
+    pf = ParticleFilter(grid, AmclParams(random_seed=1))
+    field = pf.field
+    # corner (row 60, column 50): the west edge of free space, no occupied cell near it
+    assert field.obstacle_distance_m[60, 50] > 1.0
+    assert field.edge_distance_m[60, 50] == 0.0 and field.distance_m[60, 50] == 0.0
+    # a scan of the west end explains its beams there (hits, not "unknown")
+    pose = (4.0, 3.0, math.pi)
+    laser = GridLaser(grid, rng=np.random.default_rng(2))
+    beams = dense_beams(laser, pose, pf.params, 60)
+    assert pf.explained_fraction(pose, beams.ranges, beams.bearings, MOUNT) > 0.95
+
+
+def test_filter_at_rest_settles_on_the_truth_along_a_hall_ending_in_unknown():
+    grid = hall(edge_unknown=True)
+    params = AmclParams(random_seed=3)
+    truth = (5.0, 2.0, math.pi)  # facing the west end, which alone pins x
+    laser = GridLaser(grid, rng=np.random.default_rng(4))
+    amcl = Amcl(grid, params)
+    amcl.set_initial_pose((truth[0] + 0.1, truth[1], truth[2]), np.diag([0.1 ** 2, 0.05 ** 2, 0.02 ** 2]))
+    for k in range(40):
+        amcl.request_nomotion_update()
+        amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 0.1 * k)
+    assert abs(amcl.estimate.pose[0] - truth[0]) < 0.03
+
+
+def _refine(grid: OccupancyMap, truth, start, cov_diag, seed: int):  # noqa: ANN001, ANN202
+    params = AmclParams()
+    pf = ParticleFilter(grid, params)
+    laser = GridLaser(grid, rng=np.random.default_rng(seed))
+    beams = dense_beams(laser, truth, params, 541)
+    model = BeamModel(params.z_hit, params.z_rand / beams.range_max, params.sigma_hit, params.laser_likelihood_max_dist)
+    return refine_pose(pf.field.exact_distance_m(), grid.origin, grid.resolution, model, start,
+                       np.diag(cov_diag), beams.ranges, beams.bearings, MOUNT, occupied=pf.occupied)
+
+
+def test_refinement_finds_the_pose_a_wall_thickness_away():
+    """Thick walls: a pose shifted by their thickness puts the endpoints on the far faces, which the distance field
+    alone scores as hits; the pass-through check does not."""
+    grid = hall(edge_unknown=False, wall_cells=2)
+    truth = (3.0, 2.0, 0.3)
+    for seed, start in enumerate([(3.0, 2.1, 0.3), (2.93, 1.92, 0.31), (3.04, 2.05, 0.29)]):
+        r = _refine(grid, truth, start, [0.03 ** 2, 0.03 ** 2, 0.01 ** 2], seed)
+        assert r.used
+        assert math.hypot(r.pose[0] - truth[0], r.pose[1] - truth[1]) < 0.01, (start, r)
+        assert abs(r.pose[2] - truth[2]) < 0.005
+
+
+def test_refinement_keeps_the_filter_where_the_scan_does_not_pin_the_pose():
+    """In the middle of a long featureless corridor seen without its ends, x is unobserved: the prior (the filter's
+    belief) keeps it, while y and theta, which the walls pin, are corrected."""
+    data = np.full((60, 1200), UNKNOWN, dtype=np.int8)
+    data[20:40, :] = FREE
+    data[19, :] = OCCUPIED
+    data[40, :] = OCCUPIED
+    grid = OccupancyMap(data, RES, (0.0, 0.0, 0.0))
+    truth = (30.0, 1.5, 0.0)
+    start = (30.04, 1.53, 0.01)
+    r = _refine(grid, truth, start, [0.02 ** 2, 0.02 ** 2, 0.01 ** 2], 5)
+    assert abs(r.pose[0] - start[0]) < 0.01  # stays: nothing to say
+    assert abs(r.pose[1] - truth[1]) < 0.01 and abs(r.pose[2] - truth[2]) < 0.004
+
+
+def test_amcl_refines_on_request_only_when_tracking_and_moves_its_particles():
+    grid = hall(edge_unknown=True)
+    params = AmclParams(random_seed=6)
+    amcl = Amcl(grid, params)
+    truth = (6.0, 2.5, 2.5)
+    laser = GridLaser(grid, rng=np.random.default_rng(7))
+    amcl.set_initial_pose(truth, np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2]))
+    t = 0.0
+    for _ in range(30):
+        t += 0.1
+        amcl.request_nomotion_update()
+        amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, t)
+    assert amcl.state == "tracking"
+    # shift the whole filter 6 cm off, as a filter that drifted while driving
+    amcl.pf.poses[:amcl.pf.n, 0] += 0.06
+    amcl.request_nomotion_update(refine=True)
+    t += 0.1
+    scan = laser.scan(truth)
+    dense = select_beams(scan, laser.angle_min, laser.angle_increment, laser.range_min, laser.range_max, params,
+                         max_beams=scan.size)
+    amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, t, dense)
+    assert amcl.last_refinement is not None and amcl.last_refinement.used
+    assert math.hypot(amcl.estimate.pose[0] - truth[0], amcl.estimate.pose[1] - truth[1]) < 0.015
+    mean_x = float(np.average(amcl.pf.poses[:amcl.pf.n, 0], weights=amcl.pf.weights[:amcl.pf.n]))
+    assert abs(mean_x - truth[0]) < 0.03  # the particles moved with it
+    assert not amcl.refine_pending
+
+
+def test_yawed_map_is_resampled_onto_the_axis_aligned_raster():
+    grid = hall(edge_unknown=False)
+    yawed = OccupancyMap(grid.data, RES, (15.0, 6.0, math.pi))  # the same hall turned half a turn about (15, 6)
+    pf = ParticleFilter(yawed, AmclParams(random_seed=1))
+    assert pf.grid.origin[2] == 0.0
+    assert np.array_equal(pf.grid.data, grid.data[::-1, ::-1])
+    assert math.isclose(pf.grid.origin[0], 0.0, abs_tol=1e-6) and math.isclose(pf.grid.origin[1], 0.0, abs_tol=1e-6)
+
+
+def test_beams_that_reach_their_end_through_a_wall_score_as_misses():
+    """Facing a 2-cell wall head-on: a pose one wall thickness closer puts every endpoint on the wall's far face,
+    a hit for the distance field alone; the pass-through check scores it far below the truth."""
+    from services.localization.refine import log_likelihood
+
+    grid = hall(edge_unknown=False, wall_cells=2)
+    params = AmclParams()
+    pf = ParticleFilter(grid, params)
+    truth = (11.0, 3.0, 0.0)  # 0.5 m from the inner face of the 2-cell east wall (x = 12.5 .. 12.6)
+    laser = GridLaser(grid, beams=541, fov_rad=math.radians(30.0), rng=np.random.default_rng(8))
+    beams = dense_beams(laser, truth, params, 541)
+    model = BeamModel(params.z_hit, params.z_rand / 20.0, params.sigma_hit, params.laser_likelihood_max_dist)
+    poses = np.array([truth, (truth[0] + 2 * RES, truth[1], truth[2])])
+    args = (pf.field.exact_distance_m(), grid.origin, grid.resolution, model, poses, beams.ranges, beams.bearings,
+            MOUNT)
+    plain = log_likelihood(*args)
+    checked = log_likelihood(*args, occupied=pf.occupied)
+    assert plain[1] > plain[0] - 0.1 * abs(plain[0])  # the field alone barely tells them apart
+    assert checked[1] < checked[0] - 100.0
