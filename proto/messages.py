@@ -299,6 +299,18 @@ class Reply(Message):
     message: str = ""
 
 
+class LocalizationUpdate(Message):
+    """The answer to ``localization/nomotion``, sent once the update it asked for has run on a scan (or could not):
+    ``ok`` and a human-readable ``message``; with ``ok``, the updated estimate (``pose``, stamped with its scan) and
+    the ``map_odom`` transform derived from it, exactly as published on ``pose`` and ``tf/map_odom``. A client that
+    judges the robot's pose after the update applies these first, whatever order the topics arrive in."""
+
+    ok: bool
+    message: str = ""
+    pose: PoseWithCovariance | None = None
+    map_odom: Transform2D | None = None
+
+
 class GoalRequest(Message):
     """A navigation goal in ``frame``; ``id`` is chosen by the caller or assigned by nav."""
 

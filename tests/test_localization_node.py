@@ -147,10 +147,18 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
         bad = await client.query("localization/initial_pose",
                                  InitialPoseRequest(pose=Pose2D(x=1.0), covariance=[1.0, 2.0]))
         assert not bad.ok and "covariance" in bad.message
-        assert (await client.query("localization/nomotion", Empty())).ok
+        # localization/nomotion answers once the update ran on a scan, with the pose and map->odom it published
         n = len(poses)
-        await robot.step(truth[-1])
-        await wait_for(lambda: len(poses) > n, timeout_s=10, message="nomotion update published no pose")
+        asked = asyncio.ensure_future(client.query("localization/nomotion", Empty(), timeout_s=10.0))
+        deadline = asyncio.get_running_loop().time() + 10.0
+        while not asked.done() and asyncio.get_running_loop().time() < deadline:
+            await robot.step(truth[-1])
+        answer = await asked
+        assert answer.ok, answer.message
+        assert answer.pose is not None and answer.map_odom is not None
+        await wait_for(lambda: any(p.stamp == answer.pose.stamp for p in poses[n:])
+                       and any(t.stamp == answer.map_odom.stamp and t.x == answer.map_odom.x for t in tfs),
+                       timeout_s=10, message="the nomotion update's pose and map->odom were not published")
 
         pose_file = tmp_path / "localization_pose.json"
         await wait_for(lambda: pose_file.is_file() and json.loads(pose_file.read_text())["x"] > 9.0, timeout_s=10)

@@ -121,7 +121,7 @@ def test_stale_pose_stops_the_robot() -> None:
     assert out.cmd == (0.0, 0.0, 0.0) and out.plan_request is None
 
 
-def test_a_pose_jump_clears_the_obstacle_layers_and_a_requested_update_reaches_the_navigator() -> None:
+def test_a_pose_jump_clears_the_obstacle_layers_and_only_the_answer_reaches_the_navigator() -> None:
     cfg = NavConfig()
     nav, tracker = free_room(), tracked(0.0)
     cycle = NavCycle(cfg, nav, tracker, 0.0)
@@ -132,21 +132,27 @@ def test_a_pose_jump_clears_the_obstacle_layers_and_a_requested_update_reaches_t
     assert nav.goal is not None
     nav.goal.loc_requested_at = 0.0
     cycle.on_pose(1.0, pose_msg(1.0, 2.0, 3.0, 0.0))
-    assert not nav.goal.loc_updated  # not asked for
-    cycle.on_localization_reply(True)
-    cycle.on_pose(2.0, pose_msg(2.0, 2.0, 3.0, 0.0))
-    assert nav.goal.loc_updated and nav.goal.loc_updated_at == 2.0
+    assert not nav.goal.loc_answered  # a pose on the topic is not the answer: it may predate the update
+    cycle.on_localization_answer(2.0, m.LocalizationUpdate(ok=False, message="no scan"))
+    assert nav.goal.loc_answered and not nav.goal.loc_updated and nav.goal.loc_updated_at == 2.0
 
 
-def test_a_fresh_estimate_arriving_before_the_nomotion_reply_is_taken():
-    cfg = NavConfig()
+def update_answer(stamp: float, map_odom_y: float, pose_y: float) -> m.LocalizationUpdate:
+    return m.LocalizationUpdate(ok=True, pose=pose_msg(stamp, 2.0, pose_y, 0.0),
+                                map_odom=m.Transform2D(stamp=stamp, y=map_odom_y))
+
+
+def test_the_answer_to_an_update_moves_the_pose_before_the_navigator_hears_of_it() -> None:
+    """The refined map->odom travels in the answer: the pose nav judges includes it even when the tf/map_odom
+    message comes later (or never), and an answer older than a tf already in hand does not undo that tf."""
     nav, tracker = free_room(), tracked(0.0)
-    cycle = NavCycle(cfg, nav, tracker, 0.0)
+    cycle = NavCycle(NavConfig(), nav, tracker, 0.0)
     nav.start_goal(0.0, (6.0, 3.0, 0.0), "g1")
     assert nav.goal is not None
     nav.goal.loc_requested_at = 0.0
-    cycle.expect_localization_update()
-    cycle.on_pose(1.0, pose_msg(1.0, 2.0, 3.0, 0.0))  # the pose beats the reply
-    cycle.on_localization_reply(True)
-    assert nav.goal.loc_updated and nav.goal.loc_updated_at == 1.0
-    assert not cycle.awaiting_localization  # not re-armed by the late reply
+    cycle.on_localization_answer(1.0, update_answer(0.9, 0.07, 3.07))
+    assert nav.goal.loc_answered and nav.goal.loc_updated
+    assert tracker.current() == pytest.approx((2.0, 3.07, 0.0))
+    cycle.on_tf(m.Transform2D(stamp=1.5, y=0.08))  # a later update
+    cycle.on_localization_answer(1.6, update_answer(0.9, 0.07, 3.07))  # a stale answer (a second request)
+    assert tracker.current() == pytest.approx((2.0, 3.08, 0.0))

@@ -842,6 +842,12 @@ class Amcl:
         self.force_update = True
         self.refine_pending = self.refine_pending or refine
 
+    def withdraw_nomotion_request(self) -> None:
+        """Nobody waits for the requested update any more (its answer's deadline passed without a scan): a late scan
+        must not move the estimate under a client that has judged without it."""
+        self.force_update = False
+        self.refine_pending = False
+
     def reanchor_odometry(self) -> None:
         """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
         self.pf_odom_pose = None

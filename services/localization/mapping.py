@@ -31,7 +31,9 @@ import numpy as np
 from proto import array
 from proto.messages import (
     MAP_NAME,
+    Empty,
     LaserScan,
+    LocalizationUpdate,
     ModeRequest,
     Odometry,
     Pose2D,
@@ -272,7 +274,7 @@ class ModeSwitcher:
         self.node.subscribe("scan", self.on_scan)
         self.node.queryable("localization/initial_pose", self._amcl_query(lambda n, r: n.on_initial_pose(r)))
         self.node.queryable("localization/global", self._amcl_query(lambda n, r: n.on_global(r)))
-        self.node.queryable("localization/nomotion", self._amcl_query(lambda n, r: n.on_nomotion(r)))
+        self.node.queryable("localization/nomotion", self.on_nomotion)
         self.node.queryable("localization/save_map", self.on_save_map)
         self.node.queryable("localization/mode", self.on_mode)
 
@@ -332,6 +334,11 @@ class ModeSwitcher:
                 return Reply(ok=False, message="localization is mapping; switch to navigation first")
             return call(self.nav, req)
         return handler
+
+    async def on_nomotion(self, req: Empty) -> LocalizationUpdate:
+        if self.nav is None:
+            return LocalizationUpdate(ok=False, message="localization is mapping; switch to navigation first")
+        return await self.nav.on_nomotion(req)
 
     def on_save_map(self, req: SaveMapRequest) -> Reply:
         if self.mapping is None:

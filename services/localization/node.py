@@ -3,12 +3,14 @@
 Publishes ``map`` (latched: its queryable also answers the ``map`` query), ``pose`` (latched, after each filter update),
 ``tf/map_odom`` (latched, every scan once localized; the map pose between updates is map_odom ∘ odom) and
 ``particles`` (throttled). Serves ``localization/initial_pose``, ``localization/global`` and
-``localization/nomotion``. The odom pose at a scan's stamp is interpolated from a short odom history. The last
-pose is saved to ``<state_dir>/localization_pose.json`` and used as the initial pose after a restart.
+``localization/nomotion`` (answered once the update ran on a scan, with its pose and map->odom). The odom pose at a
+scan's stamp is interpolated from a short odom history. The last pose is saved to
+``<state_dir>/localization_pose.json`` and used as the initial pose after a restart.
 """
 
 from __future__ import annotations
 
+import asyncio
 import collections
 import math
 from dataclasses import dataclass
@@ -23,6 +25,7 @@ from proto.messages import (
     InitialPoseRequest,
     LaserScan,
     LocalizationState,
+    LocalizationUpdate,
     Odometry,
     Pose2D,
     PoseArray,
@@ -46,6 +49,10 @@ from services.localization.pose_store import (
 from services.localization.settle import AtRestSettler
 
 Pose = tuple[float, float, float]
+
+#: wall-clock seconds ``localization/nomotion`` waits for a scan to run the update on before it answers that none came
+#: (and withdraws the request, so that a late scan does not move the estimate under a client that judged without it)
+NOMOTION_ANSWER_TIMEOUT_S = 3.0
 
 
 def _finite(*values: float) -> bool:
@@ -87,6 +94,7 @@ class LocalizationNode:
         self.stats: dict[str, Any] = collections.Counter()  # counts, and the last verdict and reason
         self.initialised = False
         self.settler = AtRestSettler()
+        self._update_waiters: list[asyncio.Future[LocalizationUpdate]] = []  # localization/nomotion queries
         self._reported_converged = False  # localizing until the estimate settled (no-motion updates at rest)
         self.pose_file = Path(cfg.state_dir) / POSE_FILE if cfg.state_dir else None
         outputs = outputs or Outputs.declare(self.node)
@@ -245,6 +253,7 @@ class LocalizationNode:
         if self.amcl.refine_pending:  # every valid beam, for the refinement at rest
             dense = select_beams(ranges, scan.angle_min, scan.angle_increment, scan.range_min, scan.range_max,
                                  self.amcl.params, max_beams=ranges.size)
+        asked = self.amcl.refine_pending
         before = self.amcl.state
         updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp, dense)
         changed = self.amcl.state != before
@@ -252,10 +261,13 @@ class LocalizationNode:
             self._on_verdict(before)
         if updated:
             self.stats["filter_updates"] += 1
+        pose = None
         if (updated or changed) and self.amcl.estimate is not None:
-            self._publish_pose(scan.stamp)
-        self._publish_tf(scan.stamp)
+            pose = self._publish_pose(scan.stamp)
+        tf = self._publish_tf(scan.stamp)
         self._publish_particles()
+        if asked and not self.amcl.refine_pending:  # the requested update (and refinement) ran on this scan
+            self._answer_update(pose, tf)
 
     def _on_verdict(self, before: str) -> None:
         """Log and count a change of the filter's verdict (published with the next pose, sent at once)."""
@@ -271,22 +283,22 @@ class LocalizationNode:
 
     # ------------------------------------------------------------------ outputs
 
-    def _publish_pose(self, stamp: float) -> None:
+    def _publish_pose(self, stamp: float) -> PoseWithCovariance:
         assert self.amcl is not None and self.amcl.estimate is not None
         est = self.amcl.estimate
-        self._put_pose(stamp, est.pose, est.covariance)
+        return self._put_pose(stamp, est.pose, est.covariance)
 
-    def _put_pose(self, stamp: float, pose: Pose, covariance: np.ndarray) -> None:
+    def _put_pose(self, stamp: float, pose: Pose, covariance: np.ndarray) -> PoseWithCovariance:
         x, y, th = (float(v) for v in pose)
         a = self.amcl
         assert a is not None
         # the filter's verdict, held at localizing until the estimate has also settled at rest (settle.py)
         state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
         spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
-        self.pub_pose.put(PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
-                                             covariance=covariance.reshape(-1).tolist(),
-                                             state=cast(LocalizationState, state),
-                                             match_score=a.match_score, spread_m=spread))
+        msg = PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
+                                 covariance=covariance.reshape(-1).tolist(), state=cast(LocalizationState, state),
+                                 match_score=a.match_score, spread_m=spread)
+        self.pub_pose.put(msg)
         self.stats["state"] = state
         self.stats["reason"] = a.reason
         self.stats["match_score"] = round(a.match_score, 3)
@@ -294,13 +306,29 @@ class LocalizationNode:
             self.log.info("converged at (%.3f, %.3f, %.3f), spread %.3f m, after %d no-motion updates", x, y, th,
                           spread, self.settler.updates)
         self._reported_converged = state == "tracking"
+        return msg
 
-    def _publish_tf(self, stamp: float) -> None:
+    def _publish_tf(self, stamp: float) -> Transform2D | None:
         assert self.amcl is not None
         if self.amcl.map_odom is None:
-            return
+            return None
         x, y, th = self.amcl.map_odom
-        self.pub_tf.put(Transform2D(stamp=stamp, parent="map", child="odom", x=x, y=y, theta=th))
+        msg = Transform2D(stamp=stamp, parent="map", child="odom", x=x, y=y, theta=th)
+        self.pub_tf.put(msg)
+        return msg
+
+    def _answer_update(self, pose: PoseWithCovariance | None, tf: Transform2D | None) -> None:
+        """Answer every waiting ``localization/nomotion`` with the update just published (pose and map->odom)."""
+        assert self.amcl is not None
+        waiters, self._update_waiters = self._update_waiters, []
+        if pose is None or tf is None:
+            answer = LocalizationUpdate(ok=False, message="the update ran but the filter has no estimate")
+        else:
+            answer = LocalizationUpdate(ok=True, message=f"updated without motion and refined ({pose.state})",
+                                        pose=pose, map_odom=tf)
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(answer)
 
     def _publish_particles(self) -> None:
         assert self.amcl is not None
@@ -356,11 +384,24 @@ class LocalizationNode:
         self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
         return Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
 
-    def on_nomotion(self, _req: Empty) -> Reply:
+    async def on_nomotion(self, _req: Empty) -> LocalizationUpdate:
+        """Update the filter without motion on the next scan, refine at rest, and answer with the result once it is
+        published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is withdrawn and the answer says so)."""
         if (problem := self._no_map()) is not None:
-            return problem
+            return LocalizationUpdate(ok=False, message=problem.message)
         assert self.amcl is not None
         if not self.initialised:
-            return Reply(ok=False, message="not localized yet: set an initial pose or start global localization")
+            return LocalizationUpdate(ok=False,
+                                      message="not localized yet: set an initial pose or start global localization")
         self.amcl.request_nomotion_update(refine=True)
-        return Reply(ok=True, message="the next scan updates the filter without motion and refines the pose")
+        fut: asyncio.Future[LocalizationUpdate] = asyncio.get_running_loop().create_future()
+        self._update_waiters.append(fut)
+        try:
+            return await asyncio.wait_for(asyncio.shield(fut), NOMOTION_ANSWER_TIMEOUT_S)
+        except TimeoutError:
+            if fut in self._update_waiters:
+                self._update_waiters.remove(fut)
+            if not self._update_waiters and self.amcl is not None:
+                self.amcl.withdraw_nomotion_request()
+            return LocalizationUpdate(ok=False, message=f"no scan reached the filter within "
+                                                        f"{NOMOTION_ANSWER_TIMEOUT_S:g} s: the update is withdrawn")

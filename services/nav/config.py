@@ -61,9 +61,12 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     fine_timeout_s: float = 20.0
     settle_time_s: float = 0.4
     # once settled, ask localization for an update without motion (odometry drifts since its last update) and
-    # correct again if the fresh estimate is off; at most this many times, waiting at most the timeout for it
+    # correct again if the fresh estimate is off; at most this many times. The goal is judged only once the answer
+    # (the updated pose and map->odom) is in hand, or localization said it cannot update, or nothing answered
+    # within localization_update_timeout_s of wall time (the query's deadline; localization itself answers
+    # within 3 s)
     final_localization_updates: int = 2
-    localization_update_timeout_s: float = 1.5
+    localization_update_timeout_s: float = 5.0
     # turn in place first when the path leaves behind the robot (LMS111 blind sector)
     rotate_first_angle_rad: float = 0.785
     rotate_done_angle_rad: float = 0.15

@@ -11,7 +11,7 @@ Per cycle (``controller_frequency_hz``):
   a ``localization/nomotion`` request when the Navigator asks for one; one zero twist when the goal ends.
 
 The node publishes what ``tick`` returns and logs its ``log`` lines. ``on_tf``, ``on_pose`` and
-``on_localization_reply`` take the inputs that change the cycle's decisions.
+``on_localization_answer`` take the inputs that change the cycle's decisions.
 """
 
 from __future__ import annotations
@@ -54,8 +54,6 @@ class NavCycle:
         self.was_active = False
         self.untrusted_since: float | None = None
         self.last_scan_at = -float("inf")
-        self.awaiting_localization = False
-        self._request_open = False  # a nomotion request was sent and its reply has not come back
         self._status_signature: tuple[object, ...] = ()
 
     def start(self, now: float) -> None:
@@ -92,23 +90,22 @@ class NavCycle:
 
     def on_pose(self, now: float, msg: m.PoseWithCovariance) -> None:
         self.tracker.on_pose(msg)
-        if self.awaiting_localization:  # the first estimate after a requested no-motion update
-            self.awaiting_localization = False
+
+    def on_localization_answer(self, now: float, answer: m.LocalizationUpdate | None) -> str | None:
+        """The answer to localization/nomotion (None: none came by the query's deadline). Its pose and map->odom
+        are applied before the Navigator hears of it (unless a newer one has arrived already), so the goal is judged
+        on the updated estimate whichever way the ``pose`` and ``tf/map_odom`` messages race the answer. Returns a
+        line to log when the update made the pose jump."""
+        line = None
+        if answer is not None and answer.ok and answer.pose is not None and answer.map_odom is not None:
+            if answer.map_odom.stamp >= self.tracker.tf_stamp:
+                line = self.on_tf(answer.map_odom)
+            if answer.pose.stamp >= self.tracker.pose_stamp:
+                self.tracker.on_pose(answer.pose)
             self.nav.localization_updated(now)
-
-    def expect_localization_update(self) -> None:
-        """Called before asking localization/nomotion: the fresh estimate can arrive before the reply does (it was
-        then missed, and nav waited for a pose that never came)."""
-        self.awaiting_localization = True
-        self._request_open = True
-
-    def on_localization_reply(self, ok: bool) -> None:
-        """localization/nomotion accepted (the next pose is the fresh estimate) or not."""
-        if not ok:
-            self.awaiting_localization = False
-        elif not self._request_open:
-            self.awaiting_localization = True
-        self._request_open = False
+        else:
+            self.nav.localization_unavailable(now)
+        return line
 
     # ------------------------------------------------------------------ the cycle
 

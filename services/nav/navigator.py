@@ -88,7 +88,8 @@ class GoalState:
     phase: str = "planning"
     fine_since: float | None = None
     settled_since: float | None = None
-    loc_requested_at: float | None = None
+    loc_requested_at: float | None = None  # a requested update at the goal has not been answered when set
+    loc_answered: bool = False
     loc_updated: bool = False
     loc_updated_at: float = 0.0
     loc_updates: int = 0
@@ -342,10 +343,18 @@ class Navigator:
             self._next_waypoint(now)
 
     def localization_updated(self, now: float) -> None:
-        """The localization published a new estimate (call after a requested update)."""
+        """Localization answered the requested update; the pose passed to ``step`` from now on includes it."""
         g = self.goal
-        if g is not None and g.loc_requested_at is not None and not g.loc_updated:
-            g.loc_updated = True
+        if g is not None and g.loc_requested_at is not None and not g.loc_answered:
+            g.loc_answered = g.loc_updated = True
+            g.loc_updated_at = now
+
+    def localization_unavailable(self, now: float) -> None:
+        """Localization answered that it could not update (or nothing answered by the request's deadline): no update
+        is pending any more, and nav judges on the estimate it has."""
+        g = self.goal
+        if g is not None and g.loc_requested_at is not None and not g.loc_answered:
+            g.loc_answered, g.loc_updated = True, False
             g.loc_updated_at = now
 
     # ------------------------------------------------------------------ planning
@@ -551,27 +560,25 @@ class Navigator:
         if g.settled_since is not None:
             if now - g.settled_since < cfg.settle_time_s:
                 return (0.0, 0.0, 0.0)
-            if g.loc_updates < cfg.final_localization_updates and not timed_out:
-                # a fresh localization estimate at standstill: odometry has drifted since the last update
-                if g.loc_requested_at is None:
-                    g.loc_requested_at = now
-                    g.loc_updated = False
-                    self.localization_request = True
+            if g.loc_requested_at is not None:
+                if not g.loc_answered:
+                    # never judge an estimate that the requested update is about to move (its answer carries the
+                    # refined pose and map->odom; the request has its own deadline), however long it takes
                     return (0.0, 0.0, 0.0)
-                waited = now - g.loc_requested_at
-                if not g.loc_updated and waited < cfg.localization_update_timeout_s:
-                    return (0.0, 0.0, 0.0)
-                if g.loc_updated and waited < g.loc_updated_at - g.loc_requested_at + 2 * self._dt:
-                    return (0.0, 0.0, 0.0)  # let map->odom of that update arrive too
-                g.loc_updates += 1
                 g.loc_requested_at = None
+                g.loc_updates += 1
                 if not g.loc_updated:
-                    g.loc_updates = cfg.final_localization_updates  # no localization answering: no more requests
+                    g.loc_updates = cfg.final_localization_updates  # localization cannot update: no more requests
                 if not fine_done:
-                    # the estimate moved (a fresh update, or one whose answer nav missed but whose map->odom
-                    # arrived): correct again before judging, never judge a pose that was not corrected to
+                    # the estimate moved: correct again before judging, never judge a pose not corrected to
                     g.settled_since = None
                     return (0.0, 0.0, 0.0)
+            elif g.loc_updates < cfg.final_localization_updates and not timed_out:
+                # a fresh localization estimate at standstill: odometry has drifted since the last update
+                g.loc_requested_at = now
+                g.loc_answered = g.loc_updated = False
+                self.localization_request = True
+                return (0.0, 0.0, 0.0)
             if within_tol:
                 self._finish("succeeded", "", now, pose)
                 return (0.0, 0.0, 0.0)

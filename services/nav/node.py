@@ -92,16 +92,18 @@ class NavService:
             self.log.info("%s", line)
 
     async def request_localization_update(self) -> None:
-        self.cycle.expect_localization_update()
+        """Ask for an update at rest; the cycle gets the answer (or None at the deadline) before the goal is judged."""
+        reply: m.LocalizationUpdate | None = None
         try:
-            reply = await self.node.query("localization/nomotion", m.Empty(), timeout_s=1.0)
+            reply = await self.node.query("localization/nomotion", m.Empty(),
+                                          timeout_s=self.cfg.localization_update_timeout_s)
         except QueryError as exc:
-            self.cycle.on_localization_reply(False)
             self.log.info("no localization update at the goal: %s", exc)
-            return
-        self.cycle.on_localization_reply(reply.ok)
-        if not reply.ok:
+        if reply is not None and not reply.ok:
             self.log.info("localization refused an update at the goal: %s", reply.message)
+        line = self.cycle.on_localization_answer(self.clock.now(), reply)
+        if line is not None:
+            self.log.info("%s", line)
 
     # ------------------------------------------------------------------ queries
 

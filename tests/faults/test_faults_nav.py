@@ -25,6 +25,7 @@ from proto.messages import (
     GoalRequest,
     GroundTruth,
     InitialPoseRequest,
+    LocalizationUpdate,
     NavStatus,
     Pose2D,
     PoseWithCovariance,
@@ -118,7 +119,7 @@ class Navigator:
             if not reply.accepted and "no robot pose" in reply.reason:
                 # a restarted nav has no pose until localization publishes one, which it does after motion or
                 # on this request (nav does not fetch localization's latched pose when it starts)
-                self.query("localization/nomotion", Empty(), Reply)
+                self.query("localization/nomotion", Empty(), LocalizationUpdate)
                 return False
             assert reply.accepted, reply.reason
             return True
