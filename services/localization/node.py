@@ -399,6 +399,8 @@ class LocalizationNode:
         try:
             return await asyncio.wait_for(asyncio.shield(fut), NOMOTION_ANSWER_TIMEOUT_S)
         except TimeoutError:
+            if fut.done():  # answered in the same turn of the loop as the deadline passed
+                return fut.result()
             if fut in self._update_waiters:
                 self._update_waiters.remove(fut)
             if not self._update_waiters and self.amcl is not None:

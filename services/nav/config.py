@@ -66,7 +66,7 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     # within localization_update_timeout_s of wall time (the query's deadline; localization itself answers
     # within 3 s)
     final_localization_updates: int = 2
-    localization_update_timeout_s: float = 5.0
+    localization_update_timeout_s: float = 10.0
     # turn in place first when the path leaves behind the robot (LMS111 blind sector)
     rotate_first_angle_rad: float = 0.785
     rotate_done_angle_rad: float = 0.15
