@@ -155,3 +155,35 @@ def test_beams_that_reach_their_end_through_a_wall_score_as_misses():
     checked = log_likelihood(*args, occupied=pf.occupied)
     assert plain[1] > plain[0] - 0.1 * abs(plain[0])  # the field alone barely tells them apart
     assert checked[1] < checked[0] - 100.0
+
+
+def test_a_requested_update_is_consumed_whatever_the_verdict_and_can_be_withdrawn():
+    """localization/nomotion answers once its update ran: the request must be consumed by the settler's paths while
+    localizing too (no refinement then), and a withdrawn request must not update on a later scan."""
+    from services.localization.settle import AtRestSettler
+
+    grid = hall(edge_unknown=True)
+    params = AmclParams(random_seed=9)
+    amcl, settler = Amcl(grid, params), AtRestSettler()
+    truth = (6.0, 2.5, 2.5)
+    laser = GridLaser(grid, rng=np.random.default_rng(10))
+    amcl.set_initial_pose(truth, np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2]))
+    assert amcl.state == "localizing"
+    amcl.request_nomotion_update(refine=True)
+    settler.process(amcl, (0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 0.1,
+                    dense_beams(laser, truth, params, 541))
+    assert not amcl.refine_pending and amcl.last_refinement is None  # updated, not refined while localizing
+    for k in range(30):  # converge at rest
+        amcl.request_nomotion_update()
+        amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 0.2 + 0.1 * k)
+    assert amcl.state == "tracking"
+    updates = amcl.updates
+    amcl.request_nomotion_update(refine=True)
+    amcl.withdraw_nomotion_request()
+    amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 5.0,
+                 dense_beams(laser, truth, params, 541))
+    assert amcl.updates == updates and amcl.last_refinement is None
+    amcl.request_nomotion_update(refine=True)
+    amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 5.1,
+                 dense_beams(laser, truth, params, 541))
+    assert amcl.updates == updates + 1 and amcl.last_refinement is not None and not amcl.refine_pending

@@ -75,16 +75,17 @@ class AtRestSettler:
     def process(self, amcl: Amcl, odom_pose: Pose, beams: ScanBeams, mount: Pose, stamp: float | None = None,
                 dense: ScanBeams | None = None) -> bool:
         """One scan (at ``stamp``): a jittered no-motion update at rest, plain AMCL when moving; returns whether
-        the filter updated. ``dense`` goes to ``Amcl.process`` (a pending refinement)."""
+        the filter updated. ``dense`` goes to ``Amcl.process`` on every path (a pending refinement, which runs only
+        while tracking: the update a client asked for happens, and is answered, whatever the verdict)."""
         if self.converged:
             return amcl.process(odom_pose, beams, mount, stamp, dense)
         if not self.at_rest(odom_pose):
             self._recent.clear()
-            return amcl.process(odom_pose, beams, mount, stamp)
+            return amcl.process(odom_pose, beams, mount, stamp, dense)
         if amcl.estimate is not None:
             self._jitter(amcl)
         amcl.request_nomotion_update()
-        updated = amcl.process(odom_pose, beams, mount, stamp)
+        updated = amcl.process(odom_pose, beams, mount, stamp, dense)
         if updated and amcl.estimate is not None:
             self.updates += 1
             self._recent.append(amcl.estimate.pose)
