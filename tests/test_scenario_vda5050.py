@@ -110,6 +110,11 @@ def test_the_report_gives_figures_per_robot_and_fails_on_any_miss() -> None:
     err = {"errorType": "navigationError", "errorDescription": "blocked"}
     assert not Vda5050FleetResult([result("r1", good, ["s", "a"], err)]).ok
     assert not Vda5050FleetResult([result("r1", good, ["s"])]).ok
+    stuck = result("r1", missed, ["s"])
+    stuck.processed, stuck.nearest_robot, stuck.nearest_gap_m = False, "r2", 0.2
+    assert "NOT processed" in format_vda5050_fleet(Vda5050FleetResult([stuck]))
+    assert "at the end r2 was 0.20 m away (chassis edge to edge): blocked by it?" in format_vda5050_fleet(
+        Vda5050FleetResult([stuck]))
     contact = Vda5050FleetResult([result("r1", good, ["s", "a"])], contacts=[{"stamp": 3.0, "robots": ["r1", "r2"]}])
     assert not contact.ok and "contact at 3.0 s: r1 - r2" in format_vda5050_fleet(contact)
 

@@ -42,7 +42,7 @@ from typing import Any
 from proto import codec
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario_fleet import closest_approach, merge_contacts
+from services.cli.scenario_fleet import BLOCKED_GAP_M, closest_approach, merge_contacts
 from services.cli.scenario_model import Scenario, ScenarioRobot, Vda5050Orders
 from services.common.se2 import wrap_angle
 
@@ -137,6 +137,10 @@ class RobotOrderResult:
     error: dict[str, Any] | None
     processed: bool
     by_cancelation: bool = False
+    #: at the end of an order that is not ok: the robot whose chassis was nearest and the gap (m, edge to edge), to
+    #: tell a robot blocked by another (and two blocked by each other: a deadlock) from one that failed alone
+    nearest_robot: str | None = None
+    nearest_gap_m: float | None = None
 
     @property
     def nodes_passed(self) -> int:
@@ -163,7 +167,8 @@ class RobotOrderResult:
                 "by_cancelation": self.by_cancelation, "order_time_s": self.order_time_s,
                 "nodes_passed": self.nodes_passed, "nodes": len(self.passes),
                 "max_deviation_m": self.max_deviation_m, "traversed": self.traversed,
-                "passes": [p.__dict__ for p in self.passes]}
+                "passes": [p.__dict__ for p in self.passes], "nearest_robot": self.nearest_robot,
+                "nearest_gap_m": self.nearest_gap_m}
 
 
 @dataclass
@@ -203,6 +208,9 @@ def format_vda5050_fleet(result: Vda5050FleetResult) -> str:
             at = f"{p.stamp:.1f}" if p.stamp is not None else "-"
             lines.append(f"  {p.node_id:<14} {'yes' if p.passed else 'NO':>6} {p.deviation_m:>11.3f} "
                          f"{p.heading_error_rad:>11.3f} {at:>7}")
+        if not r.ok and r.nearest_robot is not None and r.nearest_gap_m is not None:
+            lines.append(f"  at the end {r.nearest_robot} was {r.nearest_gap_m:.2f} m away (chassis edge to edge)"
+                         + (": blocked by it?" if r.nearest_gap_m <= BLOCKED_GAP_M else ""))
     robot_contacts = [c for c in result.contacts if "wall" not in c["robots"]]
     lines.append(f"fleet: {sum(r.ok for r in result.robots)}/{len(result.robots)} orders processed without error "
                  f"with every node passed; contacts between robots {len(robot_contacts)}, with walls "
@@ -257,6 +265,17 @@ class TruthTracker:
             if not track:
                 return self.latest[rid].stamp if rid in self.latest else 0.0
             return min(track, key=lambda t: abs(t[0] - wall_epoch_s))[1][0]
+
+    def nearest(self, rid: str, radius_m: float) -> tuple[str | None, float | None]:
+        """The other robot whose chassis is nearest ``rid``'s now, and the gap |p - q| - 2 r (m)."""
+        with self._lock:
+            me = self.latest.get(rid)
+            gaps = [(math.hypot(me.pose.x - o.pose.x, me.pose.y - o.pose.y) - 2 * radius_m, other)
+                    for other, o in self.latest.items() if other != rid] if me else []
+        if not gaps:
+            return None, None
+        gap, other = min(gaps)
+        return other, round(gap, 3)
 
     def samples(self, rid: str) -> list[Sample]:
         with self._lock:
@@ -340,10 +359,13 @@ def run_orders(sc: Scenario, session, master, *, order_timeout_s: float = 900.0,
                 bool(event.get("byCancelation"))))
         from services.common.robot import RobotSpec
 
+        radius_m = RobotSpec().chassis_radius_m
+        for r in result.robots:
+            if not r.ok:
+                r.nearest_robot, r.nearest_gap_m = tracker.nearest(r.id, radius_m)
         result.contacts = merge_contacts(tracker.contacts)
         result.closest = closest_approach(
-            {rid: {round(s[0], 3): (s[1], s[2]) for s in tracker.samples(rid)} for rid in ids},
-            RobotSpec().chassis_radius_m)
+            {rid: {round(s[0], 3): (s[1], s[2]) for s in tracker.samples(rid)} for rid in ids}, radius_m)
         return result
     finally:
         tracker.close()
