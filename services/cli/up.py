@@ -394,7 +394,8 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
                    help="with --start-seed: delay each service's start by a random 0..S s (default %(default)s)")
     p.add_argument("--vda5050", action="store_true", help="also start the VDA 5050 interface with an embedded MQTT "
-                   "broker on 127.0.0.1 (services/vda5050)")
+                   "broker on 127.0.0.1 (services/vda5050); with several robots one per robot, its serialNumber "
+                   "the robot's id, all on the one broker")
     p.add_argument("--mqtt-port", type=int, default=1883, help="embedded MQTT broker port (default %(default)s)")
     p.add_argument("--no-embedded-broker", action="store_true",
                    help="with --vda5050: use the [vda5050] broker of the config (a site broker) instead")
