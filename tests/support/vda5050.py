@@ -81,6 +81,7 @@ class Recorder:
         self.base = base
         self.messages: list[tuple[float, str, bytes]] = []
         self.invalid: list[str] = []
+        self.full_topics: set[str] = set()
         self._lock = threading.Lock()
         self.client = paho.Client(paho.CallbackAPIVersion.VERSION2)
         self.client.on_message = self._on_message
@@ -91,6 +92,7 @@ class Recorder:
     def _on_message(self, client, userdata, msg) -> None:
         topic = msg.topic.rsplit("/", 1)[-1]
         with self._lock:
+            self.full_topics.add(msg.topic)
             self.messages.append((time.monotonic(), topic, bytes(msg.payload)))
             if topic in ("state", "visualization", "connection", "factsheet"):
                 try:
@@ -106,6 +108,11 @@ class Recorder:
     def states(self, after: int = 0) -> list[dict[str, Any]]:
         with self._lock:
             return [json.loads(p) for _, t, p in self.messages[after:] if t == "state"]
+
+    def topics(self) -> set[str]:
+        """Every full topic a message arrived on."""
+        with self._lock:
+            return set(self.full_topics)
 
     def count(self, topic: str | None = None) -> int:
         with self._lock:
