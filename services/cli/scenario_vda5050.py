@@ -86,7 +86,7 @@ class NodePass:
     #: the least distance (m) between the true position and the node while passing it (or over the rest of the
     #: track when it was never passed)
     deviation_m: float
-    #: |true heading - node theta| (rad) where the distance was least
+    #: |true heading - node theta| (rad) at the pass (where the distance was least when not passed)
     heading_error_rad: float
     #: sim time of the pass (the first moment within both deviations), None when not passed
     stamp: float | None
@@ -121,7 +121,7 @@ def judge_passes(track: list[Sample], nodes: list[OrderNode]) -> list[NodePass]:
         while end + 1 < len(track) and dist(track[end + 1]) <= n.dev_xy_m:
             end += 1
         best = min(track[hit:end + 1], key=dist)
-        out.append(NodePass(n.node_id, True, round(dist(best), 4), round(heading(best), 4), track[hit][0]))
+        out.append(NodePass(n.node_id, True, round(dist(best), 4), round(heading(track[hit]), 4), track[hit][0]))
         start = hit
     return out
 
