@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from services.common.motor_units import MotorUnits
 from services.common.robot import RobotSpec, TwistLimits
 from services.common.se2 import wrap_angle
 from services.drive.kinematics import (
@@ -20,7 +21,6 @@ from services.drive.kinematics import (
     optimize,
 )
 from services.drive.odometry import Pose, arc_pose
-from services.drive.units import MotorUnits
 
 ROBOT = RobotSpec()
 KIN = SwerveKinematics([(m.x_m, m.y_m) for m in ROBOT.modules])

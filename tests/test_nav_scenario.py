@@ -171,3 +171,26 @@ def test_plots_are_written(tmp_path: Path) -> None:
                            data=np.zeros(800, dtype=np.int8).tobytes())
     files = draw_plots([leg], grid, tmp_path / "plots")
     assert len(files) == 2 and all(f.stat().st_size > 1000 for f in files)
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "scenarios").glob("*.toml")), ids=lambda p: p.name)
+def test_every_shipped_scenario_loads_with_the_public_maps(path: Path, shared_dir: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Shipped scenarios name public maps relative to a maps folder, never by a path outside the checkout."""
+    if path.name == "suite.toml":
+        return  # the suite has its own format (test_nav_robustness)
+    assert "../" not in path.read_text(), f"{path.name} reaches outside the project"
+    monkeypatch.delenv("ZAGV_MAPS_DIR", raising=False)
+    sc = load_scenario(path, shared_dir / "data" / "maps")
+    assert sc.goals or sc.robots
+
+
+def test_a_map_found_nowhere_names_every_place_looked(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ZAGV_MAPS_DIR", str(tmp_path / "maps"))
+    p = write(tmp_path, 'map = "site/floor.yaml"\n[[goals]]\npose = [1.0, 0.0, 0.0]\n')
+    with pytest.raises(ScenarioError) as err:
+        load_scenario(p)
+    assert str(tmp_path / "maps" / "site" / "floor.yaml") in str(err.value) and "--maps-dir" in str(err.value)
+    (tmp_path / "maps" / "site").mkdir(parents=True)
+    (tmp_path / "maps" / "site" / "floor.yaml").write_text("image: floor.pgm\n")
+    assert load_scenario(p).map_yaml == str((tmp_path / "maps" / "site" / "floor.yaml").resolve())

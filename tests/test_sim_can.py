@@ -11,14 +11,16 @@ import pytest
 
 from proto import codec
 from proto.messages import GroundTruth
+from services.common.motor_units import MotorUnits
 from services.sim.config import SimConfig
-from services.sim.robot_model import MotorUnits
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration
 
 CFG = SimConfig()
-UNITS = MotorUnits(CFG.wheel_radius_m, CFG.gear_ratio, CFG.traction_cpr, CFG.steer_counts_per_rev, CFG.steer_cpr, 0)
+UNITS = MotorUnits(wheel_radius_m=CFG.wheel_radius_m, gear_ratio=CFG.gear_ratio,
+                   traction_counts_per_rev=CFG.traction_cpr, steer_counts_per_rev=CFG.steer_counts_per_rev,
+                   steer_motor_counts_per_rev=CFG.steer_cpr)
 
 
 class Master:
@@ -106,7 +108,7 @@ def test_master_drives_both_modules_and_the_watchdog_stops_them(stack_factory) -
         time.sleep(0.1)
         with lock:
             pose = truth[-1].pose
-        travelled = {n: UNITS.traction_counts_to_m(master.latest_counts(n)[0] - start_counts[n][0]) for n in (1, 2)}
+        travelled = {n: UNITS.counts_to_m(master.latest_counts(n)[0] - start_counts[n][0]) for n in (1, 2)}
         dx, dy = pose.x - start_pose.x, pose.y - start_pose.y
         assert travelled[1] > 0.2
         assert math.hypot(dx, dy) == pytest.approx(travelled[1], abs=0.005)

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from services.common.motor_units import MotorUnits
 from services.common.robot import RobotSpec
 from services.sim.config import SimConfig
 from services.sim.robot_model import (
-    MotorUnits,
     SlipModel,
     SteerMotor,
     SwerveRobot,
@@ -21,8 +21,8 @@ from services.sim.robot_model import (
 from services.sim.simulation import Simulation
 from services.sim.world import World
 
-UNITS = MotorUnits(wheel_radius_m=0.1, gear_ratio=30.0, traction_cpr=4096, steer_counts_per_rev=204800,
-                   steer_cpr=4096, steer_zero_counts=1000)
+UNITS = MotorUnits(wheel_radius_m=0.1, gear_ratio=30.0, traction_counts_per_rev=4096, steer_counts_per_rev=204800,
+                   steer_motor_counts_per_rev=4096, steer_zero_counts=1000)
 MODULES = [(0.445, 0.445), (-0.445, -0.445)]
 
 
@@ -34,7 +34,7 @@ def test_motor_units_follow_paper_equations() -> None:
     assert UNITS.counts_to_rad(1000 + 51200) == pytest.approx(math.pi / 2)
     assert UNITS.rad_to_counts(-math.pi) == pytest.approx(1000 - 102400)
     # one wheel revolution = J motor revolutions = J * cpr counts = 2 pi R of travel
-    assert UNITS.traction_counts_to_m(30 * 4096) == pytest.approx(2 * math.pi * 0.1)
+    assert UNITS.counts_to_m(30 * 4096) == pytest.approx(2 * math.pi * 0.1)
 
 
 def test_traction_ramps_at_its_acceleration_and_counts_its_turns() -> None:
@@ -149,7 +149,7 @@ def test_opposed_modules_turn_in_place() -> None:
 def test_slip_shortens_the_ground_travel_but_not_the_counts() -> None:
     robot = make_robot(slip=SlipModel(slip_ratio=0.1))
     drive(robot, 0.2, 0.0, 2.0)
-    travelled = UNITS.traction_counts_to_m(robot.modules[0].traction.position_counts)
+    travelled = UNITS.counts_to_m(robot.modules[0].traction.position_counts)
     assert travelled == pytest.approx(0.4, abs=1e-3)
     assert robot.x == pytest.approx(0.36, abs=1e-3)
     noisy = SlipModel(slip_ratio=0.0, slip_noise=0.05, seed=3)
@@ -185,7 +185,7 @@ def test_simulation_publishes_consistent_encoders_and_imu() -> None:
     assert sim.now_s == pytest.approx(2.0)
     assert sim.robot.x > 0.1 and abs(sim.robot.y) < 1e-9
     counts = sim.nodes[0].counter(1)
-    assert UNITS.traction_counts_to_m(counts) == pytest.approx(sim.robot.x, abs=1e-3)
+    assert UNITS.counts_to_m(counts) == pytest.approx(sim.robot.x, abs=1e-3)
     assert {cid for cid, _ in frames} == {0x701, 0x702}, "heartbeats only before NMT start"
     assert sim.imu.line() == b"#YPR=-0.00,0.00,0.00\r\n" or sim.imu.line() == b"#YPR=0.00,0.00,0.00\r\n"
     assert not sim.teleport(math.nan, 0.0, 0.0)

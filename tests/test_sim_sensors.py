@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from services.common.motor_units import MotorUnits
 from services.sim.razor import RazorImu
-from services.sim.robot_model import MotorUnits, SwerveRobot
+from services.sim.robot_model import SwerveRobot
 from services.sim.scan_source import ScanSource
 from services.sim.world import World
 

@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+import yaml
 
 from services.sim.world import World, WorldError, builtin_worlds, load_world
 
@@ -109,7 +110,8 @@ def test_dynamic_obstacles_by_request_and_schedule() -> None:
 def test_map_roundtrip_and_unknown_cells_are_solid(tmp_path, corridor: World) -> None:
     yml, pgm = corridor.write_map(tmp_path / "world")
     text = yml.read_text()
-    assert "mode: trinary" in text and "origin: [-2.5, -2, 0.0]" in text and "resolution: 0.05" in text
+    meta = yaml.safe_load(text)
+    assert meta["mode"] == "trinary" and meta["origin"] == [-2.5, -2.0, 0.0] and meta["resolution"] == 0.05
     raw = pgm.read_bytes()
     assert raw.startswith(b"P5\n")
     assert set(np.unique(np.frombuffer(raw[-640 * 350:], dtype=np.uint8)).tolist()) == {0, 254}

@@ -38,6 +38,7 @@ RECORDED = ("scan", "odom", "tf/map_odom", "pose")
 AMCL_SEED = 7
 #: sim seconds the robot stands still at the start of the bag (a fresh localization settles in a few seconds at rest)
 REST_BEFORE_DRIVING_S = 10.0
+BLACKBOX_MINUTE_S = 60.0
 
 
 @dataclass
@@ -106,9 +107,11 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                 if rec.poll() is not None or time.monotonic() > deadline:  # the robot moves once the bag is open
                     raise RuntimeError("zagv record did not start recording")
                 time.sleep(0.05)
-            runs = asyncio.run(_drive(sc, stack))
+            runs, ready_sim_s = asyncio.run(_drive(sc, stack))
             if estop_at_s is not None:
-                estop_s = asyncio.run(_estop_at(stack, estop_at_s))
+                # the black box holds what it saw since it was ready (before `zagv: ready`): a full minute of it
+                # lies before the e-stop only once the sim clock is a minute past that, whatever the machine's load
+                estop_s = asyncio.run(_estop_at(stack, max(estop_at_s, ready_sim_s + BLACKBOX_MINUTE_S + 2.0)))
                 stack.wait_line(r"black box saved", timeout_s=120.0)
             time.sleep(1.0)  # the last messages reach the recorder
         finally:
@@ -142,14 +145,16 @@ def bag_span_s(bag: Path) -> float:
         return (src.end_ns - src.start_ns) / 1e9
 
 
-async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
+async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
-    initial pose of its configuration, so that a replay into a fresh localization starts from the same prior."""
+    initial pose of its configuration, so that a replay into a fresh localization starts from the same prior.
+    Returns the runs and the sim time at which the ready stack was first seen publishing."""
     from services.cli.scenario import Client, run_goal, wait_until
 
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:
         await wait_until(lambda: c.truth is not None and c.odom_count > 5, "no ground truth and odometry", 60.0)
+        ready_sim_s = c.sim_time
         # the bag opens with the robot at rest: a localization fed the bag settles there (at-rest updates) as the
         # recorded one did before the bag opened, instead of converging while the robot already drives
         rest_until_s = c.sim_time + REST_BEFORE_DRIVING_S
@@ -157,7 +162,7 @@ async def _drive(sc, stack: Stack) -> list[dict]:  # Scenario
         goals = [await run_goal(c, sc, 1, k, g, 300.0, None) for k, g in enumerate(sc.goals, 1)]
     finally:
         c.close()
-    return [{"run": 1, "goals": goals}]
+    return [{"run": 1, "goals": goals}], ready_sim_s
 
 
 async def _estop_at(stack: Stack, at_s: float) -> float:

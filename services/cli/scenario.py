@@ -4,7 +4,8 @@ final-pose errors against ground truth (the paper's Table 3).
 Scenario TOML (keys fixed):
 
     world = "corridor"            # a built-in sim world, or
-    map = "maps/depot.yaml"       # any ROS map YAML (relative to the scenario file, else to the current folder)
+    map = "maps/depot.yaml"       # any ROS map YAML (relative to the scenario file, else --maps-dir, else the
+                                  # current folder)
     start = [0.0, 0.0, 0.0]       # x, y (m), theta (rad)
     repeats = 10
     speed = 4.0                   # sim speed factor (sim s per wall s)
@@ -409,6 +410,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp = ssub.add_parser("run", help="run a scenario file and print the error table")
     rp.add_argument("file", help="scenario TOML")
     rp.add_argument("--json", help="write the per-run results to this file")
+    rp.add_argument("--maps-dir", help="folder the scenario's map path is relative to when it is not next to the "
+                    "file (default: $ZAGV_MAPS_DIR)")
     rp.add_argument("--plots", help="write per-leg path and velocity plots (PNG) into this folder")
     rp.add_argument("--goal-timeout", type=float, default=900.0, help="sim seconds per goal (default %(default)s)")
     rp.add_argument("--repeats", type=int, help="override the file's repeats")
@@ -432,7 +435,7 @@ def run(args: argparse.Namespace) -> int:
     from services.cli.stack_process import Stack
 
     try:
-        sc = load_scenario(args.file)
+        sc = load_scenario(args.file, args.maps_dir)
     except ScenarioError as exc:
         print(f"zagv scenario: {exc}", file=sys.stderr)
         return 2

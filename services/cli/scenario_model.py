@@ -4,6 +4,7 @@ mapping phase; ``load_scenario`` checks it and names what is wrong (services/cli
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -95,8 +96,13 @@ def _mapping(raw: Any, p: Path, name: str) -> Mapping:
     return Mapping(route, save_as, float(speed), float(allowance))
 
 
-def load_scenario(path: str | Path) -> Scenario:
+def load_scenario(path: str | Path, maps_dir: str | Path | None = None) -> Scenario:
+    """Read and check a scenario file. A relative ``map`` is looked up next to the file, then in ``maps_dir`` (the
+    folder holding public map sets; default: the ``ZAGV_MAPS_DIR`` environment variable), then in the current
+    folder."""
     p = Path(path)
+    if maps_dir is None and os.environ.get("ZAGV_MAPS_DIR"):
+        maps_dir = os.environ["ZAGV_MAPS_DIR"]
     try:
         data = tomllib.loads(p.read_text())
     except OSError as exc:
@@ -113,11 +119,13 @@ def load_scenario(path: str | Path) -> Scenario:
     map_yaml = None
     if "map" in data:
         mp = Path(data["map"])
-        candidates = [mp] if mp.is_absolute() else [(p.parent / mp).resolve(), mp.resolve()]
+        candidates = [mp] if mp.is_absolute() else [(p.parent / mp).resolve(), *(
+            [(Path(maps_dir) / mp).resolve()] if maps_dir is not None else []), mp.resolve()]
         found = [c for c in candidates if c.is_file()]
         if not found:
-            raise ScenarioError(f"{p}: map {data['map']} not found (relative to the scenario file or the current"
-                                f" folder: {', '.join(map(str, candidates))})")
+            raise ScenarioError(f"{p}: map {data['map']} not found (relative to the scenario file, the maps folder"
+                                f" (--maps-dir or ZAGV_MAPS_DIR) or the current folder: "
+                                f"{', '.join(map(str, candidates))})")
         map_yaml = str(found[0])
     goals_raw = data.get("goals", [])
     robots = []

@@ -21,34 +21,6 @@ def _default_modules() -> list[ModuleGeometry]:
     return [ModuleGeometry(r, r), ModuleGeometry(-r, -r)]
 
 
-class RobotSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
-    """Geometry and velocity limits shared by drive, nav and sim ([robot] table)."""
-
-    robot_id: str = "r1"
-    chassis_radius_m: float = 0.63
-    inflation_radius_m: float = 0.645
-    mass_kg: float = 180.0
-    modules: list[ModuleGeometry] = msgspec.field(default_factory=_default_modules)
-    vx_min_mps: float = -0.1
-    vx_max_mps: float = 0.2
-    vy_max_mps: float = 0.2
-    wz_max_radps: float = 0.5
-    ax_max_mps2: float = 0.5
-    ay_max_mps2: float = 0.5
-    alpha_max_radps2: float = 1.0
-    wheel_speed_max_mps: float = 0.5
-    goal_xy_tolerance_m: float = 0.05
-    goal_yaw_tolerance_rad: float = 0.05
-    laser_mount_x_m: float = 0.45
-    laser_mount_y_m: float = 0.0
-    laser_mount_theta_rad: float = 0.0
-
-    def twist_limits(self) -> TwistLimits:
-        """The Table 2 velocity box and the acceleration limits as one TwistLimits."""
-        return TwistLimits(self.vx_min_mps, self.vx_max_mps, self.vy_max_mps, self.wz_max_radps,
-                           self.ax_max_mps2, self.ay_max_mps2, self.alpha_max_radps2)
-
-
 Twist3 = tuple[float, float, float]
 """A body twist (vx m/s, vy m/s, wz rad/s)."""
 
@@ -83,6 +55,38 @@ class TwistLimits:
         return (_step(current[0], target[0], self.ax_max_mps2 * dt_s),
                 _step(current[1], target[1], self.ay_max_mps2 * dt_s),
                 _step(current[2], target[2], self.alpha_max_radps2 * dt_s))
+
+
+TABLE2 = TwistLimits()
+"""The paper's Table 2 limits: the defaults of every RobotSpec."""
+
+
+class RobotSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """Geometry and velocity limits shared by drive, nav and sim ([robot] table)."""
+
+    robot_id: str = "r1"
+    chassis_radius_m: float = 0.63
+    inflation_radius_m: float = 0.645
+    mass_kg: float = 180.0
+    modules: list[ModuleGeometry] = msgspec.field(default_factory=_default_modules)
+    vx_min_mps: float = TABLE2.vx_min_mps
+    vx_max_mps: float = TABLE2.vx_max_mps
+    vy_max_mps: float = TABLE2.vy_max_mps
+    wz_max_radps: float = TABLE2.wz_max_radps
+    ax_max_mps2: float = TABLE2.ax_max_mps2
+    ay_max_mps2: float = TABLE2.ay_max_mps2
+    alpha_max_radps2: float = TABLE2.alpha_max_radps2
+    wheel_speed_max_mps: float = 0.5
+    goal_xy_tolerance_m: float = 0.05
+    goal_yaw_tolerance_rad: float = 0.05
+    laser_mount_x_m: float = 0.45
+    laser_mount_y_m: float = 0.0
+    laser_mount_theta_rad: float = 0.0
+
+    def twist_limits(self) -> TwistLimits:
+        """The Table 2 velocity box and the acceleration limits as one TwistLimits."""
+        return TwistLimits(self.vx_min_mps, self.vx_max_mps, self.vy_max_mps, self.wz_max_radps,
+                           self.ax_max_mps2, self.ay_max_mps2, self.alpha_max_radps2)
 
 
 def _step(value: float, target: float, max_delta: float) -> float:

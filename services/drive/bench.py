@@ -40,13 +40,13 @@ from proto import codec
 from proto.keys import Keys
 from proto.messages import Twist2D, WheelStates
 from services.common.bench import BenchRow, time_calls
+from services.common.motor_units import MotorUnits
 from services.common.ports import free_port
 from services.common.robot import RobotSpec
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
 from services.drive.kinematics import SwerveKinematics, Twist
-from services.drive.units import MotorUnits
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

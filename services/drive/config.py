@@ -7,9 +7,9 @@ from typing import Literal
 
 import msgspec
 
+from services.common.motor_units import MotorUnits
 from services.drive.canlink import LinkSettings
 from services.drive.kinematics import SteeringLimits
-from services.drive.units import MotorUnits
 
 _LINK = LinkSettings()  # the link's defaults, repeated nowhere else
 

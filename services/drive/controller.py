@@ -16,6 +16,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from services.common.motor_units import MotorUnits
 from services.common.robot import TwistLimits
 from services.drive.kinematics import (
     ZERO_TWIST,
@@ -28,7 +29,6 @@ from services.drive.kinematics import (
     optimize,
 )
 from services.drive.odometry import Pose
-from services.drive.units import MotorUnits
 
 DEFAULT_STEERING = SteeringLimits()
 ORIGIN = Pose()

@@ -34,10 +34,10 @@ import yaml
 from PIL import Image, UnidentifiedImageError
 
 from proto.messages import OccupancyGrid, Pose2D
+from services.common.ros_map import FREE_THRESH, OCCUPIED_THRESH, trinary_pixels, write_ros_map
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
-SAVE_FREE_PIXEL, SAVE_OCCUPIED_PIXEL, SAVE_UNKNOWN_PIXEL = 254, 0, 205
-SAVE_OCCUPIED_THRESH, SAVE_FREE_THRESH = 0.65, 0.196
+SAVE_OCCUPIED_THRESH, SAVE_FREE_THRESH = OCCUPIED_THRESH, FREE_THRESH
 MODES = ("trinary", "scale", "raw")
 REQUIRED_KEYS = ("image", "resolution", "origin")
 MAX_YAML_BYTES = 64 * 1024
@@ -262,24 +262,12 @@ def save_map(grid: OccupancyMap, base: str | Path, *, free_thresh: float = SAVE_
     """Write ``<base>.yaml`` + ``<base>.pgm`` (trinary) like map_saver; returns both paths.
 
     A cell is written free (254) when 0 <= value <= 100 * free_thresh, occupied (0) when value >= 100 *
-    occupied_thresh, unknown (205) otherwise.
+    occupied_thresh, unknown (205) otherwise (``services.common.ros_map``).
     """
-    base = Path(base)
-    if base.suffix in (".yaml", ".yml", ".pgm"):
-        base = base.with_suffix("")
-    yaml_path, image_path = base.with_suffix(".yaml"), base.with_suffix(".pgm")
-    d = grid.data
-    pixels = np.full(d.shape, SAVE_UNKNOWN_PIXEL, dtype=np.uint8)
-    pixels[(d >= 0) & (d <= free_thresh * 100.0)] = SAVE_FREE_PIXEL
-    pixels[d >= occupied_thresh * 100.0] = SAVE_OCCUPIED_PIXEL
+    pixels = trinary_pixels(grid.data, free_thresh=free_thresh, occupied_thresh=occupied_thresh)
     try:
-        base.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(np.ascontiguousarray(pixels[::-1]), mode="L").save(image_path, format="PPM")
         ox, oy, oyaw = grid.origin
-        yaml_path.write_text(
-            f"image: {image_path.name}\nmode: trinary\nresolution: {grid.resolution!r}\n"
-            f"origin: [{float(ox)!r}, {float(oy)!r}, {float(oyaw)!r}]\nnegate: 0\n"
-            f"occupied_thresh: {SAVE_OCCUPIED_THRESH}\nfree_thresh: {SAVE_FREE_THRESH}\n")
+        return write_ros_map(base, pixels[::-1], grid.resolution, (float(ox), float(oy), float(oyaw)),
+                             comment="zagv map")
     except OSError as exc:
-        raise MapError(f"map {yaml_path}: cannot write: {exc.strerror or exc}") from None
-    return yaml_path, image_path
+        raise MapError(f"map {base}: cannot write: {exc.strerror or exc}") from None

@@ -20,44 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.common.motor_units import MotorUnits
 from services.common.se2 import compose, wrap_angle
-
-TWO_PI = 2.0 * math.pi
-
-
-@dataclass(frozen=True)
-class MotorUnits:
-    """Conversion between motor units and wheel units (paper eq. 7, 8)."""
-
-    wheel_radius_m: float = 0.1
-    gear_ratio: float = 30.0
-    traction_cpr: int = 4096
-    steer_counts_per_rev: int = 204800
-    steer_cpr: int = 4096
-    steer_zero_counts: int = 0
-
-    def rpm_to_mps(self, rpm: float) -> float:
-        """Eq. 7: v = V * 2*pi*R / (J * 60)."""
-        return rpm * TWO_PI * self.wheel_radius_m / (self.gear_ratio * 60.0)
-
-    def mps_to_rpm(self, v_mps: float) -> float:
-        return v_mps * self.gear_ratio * 60.0 / (TWO_PI * self.wheel_radius_m)
-
-    def counts_to_rad(self, counts: float) -> float:
-        """Eq. 8: theta = (P - P0) * 2*pi / N."""
-        return (counts - self.steer_zero_counts) * TWO_PI / self.steer_counts_per_rev
-
-    def rad_to_counts(self, theta_rad: float) -> float:
-        return theta_rad * self.steer_counts_per_rev / TWO_PI + self.steer_zero_counts
-
-    def traction_counts_to_m(self, counts: float) -> float:
-        """Wheel rim travel (m) for ``counts`` traction encoder counts."""
-        return counts / self.traction_cpr / self.gear_ratio * TWO_PI * self.wheel_radius_m
-
-    @property
-    def steer_counts_per_motor_rpm_s(self) -> float:
-        """Steering counts per second at 1 motor rpm."""
-        return self.steer_cpr / 60.0
 
 
 @dataclass
@@ -152,8 +116,8 @@ class SwerveModule:
     steer: SteerMotor = field(init=False)
 
     def __post_init__(self) -> None:
-        self.traction = TractionMotor(cpr=self.units.traction_cpr)
-        self.steer = SteerMotor(cpr=self.units.steer_cpr)
+        self.traction = TractionMotor(cpr=int(self.units.traction_counts_per_rev))
+        self.steer = SteerMotor(cpr=int(self.units.steer_motor_counts_per_rev))
         self.steer.position_counts = self.steer.target_counts = float(self.units.steer_zero_counts)
 
     @property

@@ -11,11 +11,12 @@ import math
 
 import numpy as np
 
+from services.common.motor_units import MotorUnits
 from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
 from services.sim.config import SimConfig
 from services.sim.razor import RazorImu
-from services.sim.robot_model import MotorUnits, SlipModel, SwerveRobot
+from services.sim.robot_model import SlipModel, SwerveRobot
 from services.sim.roboteq import RoboteqNode, RoboteqSettings
 from services.sim.scan_source import ScanSource
 from services.sim.world import World
@@ -36,8 +37,10 @@ class Simulation:
         self.dt = cfg.step_s
         self.steps = 0
         self.now_s = 0.0
-        units = [MotorUnits(cfg.wheel_radius_m, cfg.gear_ratio, cfg.traction_cpr, cfg.steer_counts_per_rev,
-                            cfg.steer_cpr, p0) for p0 in cfg.steer_zero_counts]
+        units = [MotorUnits(wheel_radius_m=cfg.wheel_radius_m, gear_ratio=cfg.gear_ratio,
+                            traction_counts_per_rev=cfg.traction_cpr, steer_counts_per_rev=cfg.steer_counts_per_rev,
+                            steer_motor_counts_per_rev=cfg.steer_cpr, steer_zero_counts=p0)
+                 for p0 in cfg.steer_zero_counts]
         self.robot = SwerveRobot([(m.x_m, m.y_m) for m in spec.modules], units,
                                  SlipModel(cfg.slip_ratio, cfg.slip_noise, cfg.seed))
         for m in self.robot.modules:

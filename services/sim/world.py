@@ -32,6 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 from services.common.grid import axis_aligned
+from services.common.ros_map import write_ros_map
 
 SQRT2 = math.sqrt(2.0)
 
@@ -283,20 +284,9 @@ class World:
 
     def write_map(self, prefix: str | Path) -> tuple[Path, Path]:
         """Write ``prefix.yaml`` + ``prefix.pgm`` in the ROS map_server format; returns both paths."""
-        prefix = Path(prefix)
-        prefix.parent.mkdir(parents=True, exist_ok=True)
-        pgm = prefix.with_name(prefix.name + ".pgm")
-        yml = prefix.with_name(prefix.name + ".yaml")
-        img = self.render_pgm()
-        rows, cols = img.shape
-        with open(pgm, "wb") as f:
-            f.write(f"P5\n# zagv world {self.name}\n{cols} {rows}\n255\n".encode())
-            f.write(img.tobytes())
         x0, y0 = self.origin_xy
-        yml.write_text(
-            f"image: {pgm.name}\nmode: trinary\nresolution: {self.resolution_m:g}\n"
-            f"origin: [{x0:g}, {y0:g}, 0.0]\nnegate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n")
-        return yml, pgm
+        return write_ros_map(Path(prefix), self.render_pgm(), self.resolution_m, (x0, y0, 0.0),
+                             comment=f"zagv world {self.name}")
 
     # ------------------------------------------------------------------ loading
 

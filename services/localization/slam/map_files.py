@@ -4,32 +4,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .occupancy import OccupancyGrid
+from services.common.ros_map import FREE_THRESH, OCCUPIED_THRESH
+from services.common.ros_map import write_ros_map as write_map_files
 
-OCCUPIED_THRESH = 0.65
-FREE_THRESH = 0.196
+from .occupancy import OccupancyGrid
 
 
 def write_ros_map(grid: OccupancyGrid, directory: str | Path, name: str = "map") -> Path:
     """Write ``name.pgm`` (trinary: 0 occupied, 254 free, 205 unknown) and ``name.yaml``; returns the YAML path."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
     image = grid.trinary_image(OCCUPIED_THRESH, FREE_THRESH)
-    height, width = image.shape
-    pgm = directory / f"{name}.pgm"
-    with pgm.open("wb") as f:
-        f.write(f"P5\n# zagv map build\n{width} {height}\n255\n".encode())
-        f.write(image.tobytes())
-    yaml_path = directory / f"{name}.yaml"
     ox, oy = (float(v) for v in grid.origin_xy_m)
-    yaml_path.write_text(
-        f"image: {pgm.name}\n"
-        f"mode: trinary\n"
-        f"resolution: {grid.resolution_m:.6g}\n"
-        f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
-        f"negate: 0\n"
-        f"occupied_thresh: {OCCUPIED_THRESH}\n"
-        f"free_thresh: {FREE_THRESH}\n")
+    yaml_path, _ = write_map_files(Path(directory) / name, image, grid.resolution_m, (ox, oy, 0.0),
+                                   comment="zagv map build")
     return yaml_path
 
 

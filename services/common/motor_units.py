@@ -7,7 +7,8 @@
                                                     theta = 0, N counts per steering (module) revolution.
 
 Commands are rounded to integers, clamped to the motor's range, and a non-finite input is refused (ValueError):
-a NaN never becomes a motor command.
+a NaN never becomes a motor command. The drive converts with these constants and the simulated RoboteQ motors use
+the same ones, so both sides of the CAN bus agree by construction.
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ class MotorUnits:
     gear_ratio: float = 30.0
     traction_counts_per_rev: float = 4096.0
     steer_counts_per_rev: float = 4096.0 * 50.0
+    steer_motor_counts_per_rev: float = 4096.0
     steer_zero_counts: int = 0
     max_rpm: float = 3000.0
     traction_sign: int = 1
     steer_sign: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("wheel_radius_m", "gear_ratio", "traction_counts_per_rev", "steer_counts_per_rev", "max_rpm"):
+        for name in ("wheel_radius_m", "gear_ratio", "traction_counts_per_rev", "steer_counts_per_rev",
+                     "steer_motor_counts_per_rev", "max_rpm"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"motor units: {name} must be a finite number > 0, got {value}")
@@ -72,6 +75,11 @@ class MotorUnits:
 
     def rad_to_counts(self, rad: float) -> float:
         return self.steer_zero_counts + self.steer_sign * rad * self.steer_counts_per_rev / (2.0 * math.pi)
+
+    @property
+    def steer_counts_per_motor_rpm_s(self) -> float:
+        """Steering counts per second at 1 steering-motor rpm (``steer_motor_counts_per_rev`` / 60)."""
+        return self.steer_motor_counts_per_rev / 60.0
 
     def steer_command(self, rad: float) -> int:
         """Steering command in integer counts (S32); raises ValueError for a non-finite angle."""
