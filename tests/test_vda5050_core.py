@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -274,3 +275,15 @@ def test_state_is_due_on_order_or_safety_changes_but_not_on_motion_alone() -> No
     key = v.change_key()
     v.on_drive(True, "", False, 48.0)
     assert v.change_key() != key  # e-stop
+
+
+@pytest.mark.parametrize("theta", [-3.14159, 3.14159, math.pi, -math.pi + 1e-9, 3.1415926])
+def test_a_heading_next_to_pi_stays_within_the_schema_bounds(theta: float) -> None:
+    # rounded to 0.1 mrad, -3.14159 rad became -3.1416, below the schemas' minimum (seen with a robot heading west)
+    v = vehicle((2.0, 2.0, theta))
+    headers = Headers("zagv", "r1")
+    for topic, body in (("state", v.state()), ("visualization", v.visualization())):
+        message = headers.wrap(topic, body, HEADER["timestamp"])
+        assert validate(topic, message) == [], (topic, message["agvPosition"])
+        assert abs(message["agvPosition"]["theta"]) <= math.pi
+        assert message["agvPosition"]["theta"] == pytest.approx(theta, abs=1e-4)

@@ -422,6 +422,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--start-seed", type=int, help="start the stack's services in a random order (zagv up)")
     rp.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
                     help="with --start-seed: random 0..S s delay before each service (zagv up)")
+    rp.add_argument("--mqtt-broker", metavar="HOST:PORT",
+                    help="[vda5050] scenarios: the MQTT broker of the robots and the master (default: embedded)")
     rp.set_defaults(func=run)
     from services.cli.scenario_generate import add_parser as add_generate
 
@@ -443,6 +445,10 @@ def run(args: argparse.Namespace) -> int:
         sc.repeats = args.repeats
     if args.speed:
         sc.speed = args.speed
+    if sc.vda5050 is not None:
+        from services.cli.scenario_vda5050 import run_vda5050_fleet
+
+        return run_vda5050_fleet(sc, args)
     if sc.robots:
         from services.cli.scenario_fleet import run_fleet
 

@@ -51,6 +51,39 @@ class Scenario:
     mapping: Mapping | None = None
     #: several robots in one world, each with its own start and goals (services/cli/scenario_fleet.py)
     robots: list[ScenarioRobot] = field(default_factory=list)
+    #: the ``[vda5050]`` table: the robots' goals become VDA 5050 orders of a master control
+    #: (services/cli/scenario_vda5050.py)
+    vda5050: Vda5050Orders | None = None
+
+
+@dataclass
+class Vda5050Orders:
+    """``[vda5050]``: each robot's goals are the nodes of one order (after a first node at its start), assigned by
+    the third-party master control to every robot at once (or one after another with ``sequential``)."""
+
+    allowed_deviation_xy_m: float = 0.2
+    allowed_deviation_theta_rad: float = 0.2
+    sequential: bool = False
+
+
+def _vda5050(raw: Any, p: Path) -> Vda5050Orders:
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{p}: vda5050 must be a table ([vda5050]), got {raw!r}")
+    known = {"allowed_deviation_xy_m", "allowed_deviation_theta_rad", "sequential"}
+    extra = sorted(set(raw) - known)
+    if extra:
+        raise ScenarioError(f"{p}: vda5050: unknown key(s) {', '.join(extra)}; known: {', '.join(sorted(known))}")
+    out = Vda5050Orders()
+    for name in ("allowed_deviation_xy_m", "allowed_deviation_theta_rad"):
+        v = raw.get(name, getattr(out, name))
+        if isinstance(v, bool) or not isinstance(v, int | float) or not 0 < v <= 10:
+            raise ScenarioError(f"{p}: vda5050.{name} must be a number in (0, 10], got {v!r}")
+        setattr(out, name, float(v))
+    sequential = raw.get("sequential", False)
+    if not isinstance(sequential, bool):
+        raise ScenarioError(f"{p}: vda5050.sequential must be true or false, got {sequential!r}")
+    out.sequential = sequential
+    return out
 
 
 class ScenarioError(ValueError):
@@ -110,7 +143,7 @@ def load_scenario(path: str | Path, maps_dir: str | Path | None = None) -> Scena
     except tomllib.TOMLDecodeError as exc:
         raise ScenarioError(f"{p}: TOML syntax error: {exc}") from None
     known = {"world", "map", "start", "repeats", "speed", "goals", "dynamic_obstacles", "name", "description", "robots",
-             "mapping"}
+             "mapping", "vda5050"}
     unknown = sorted(set(data) - known)
     if unknown:
         raise ScenarioError(f"{p}: unknown key(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
@@ -158,8 +191,13 @@ def load_scenario(path: str | Path, maps_dir: str | Path | None = None) -> Scena
     if not isinstance(name, str) or not name:
         raise ScenarioError(f"{p}: name must be a non-empty string, got {name!r}")
     mapping = _mapping(data["mapping"], p, name) if "mapping" in data else None
+    vda5050 = None
+    if "vda5050" in data:
+        if not robots:
+            raise ScenarioError(f"{p}: [vda5050] orders need [[robots]] (each robot's goals are its order's nodes)")
+        vda5050 = _vda5050(data["vda5050"], p)
     return Scenario(goals, data.get("world"), map_yaml, _pose(data.get("start", [0.0, 0.0, 0.0]), "start"), repeats,
-                    speed, obstacles, name, mapping, robots)
+                    speed, obstacles, name, mapping, robots, vda5050)
 
 
 def parse_goals(goals_raw: Any, p: Path, what: str) -> list[Goal]:

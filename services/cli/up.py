@@ -160,8 +160,11 @@ class StackPlan:
             sets += [f"foxglove.port={self.foxglove_port + k}"]
         elif name == "hmi_api":
             sets += [f"hmi_api.port={self.http_port + k}", f"hmi_api.state_dir={_toml_str(run_dir)}"]
-        elif name == "vda5050" and self.mqtt_embedded:
-            sets += ["vda5050.broker_host=\"127.0.0.1\"", f"vda5050.broker_port={self.mqtt_port}"]
+        elif name == "vda5050":
+            if self.mqtt_embedded:
+                sets += ["vda5050.broker_host=\"127.0.0.1\"", f"vda5050.broker_port={self.mqtt_port}"]
+            if self.fleet:  # one broker, one topic tree per robot: {interface}/{major}/{manufacturer}/<robot id>/...
+                sets += [f"vda5050.serial_number={_toml_str(self.fleet[k].id)}"]
         prefix = f"{name}."
         sets += [s for s in self.extra_sets if s.startswith(prefix)]
         return [a for s in sets for a in ("--set", s)]
@@ -214,6 +217,9 @@ def resolve_fleet(plan: StackPlan) -> None:
     from_world = world_robots(plan.world, plan.map_yaml)
     if plan.robot_count <= 1 and not plan.robot_slots and not from_world:
         return
+    if plan.vda5050 and any(s.startswith("vda5050.serial_number=") for s in plan.extra_sets):
+        raise ValueError("several robots cannot share one VDA 5050 serialNumber: in a fleet each robot's is its id "
+                         "(drop --set vda5050.serial_number)")
     count = max(plan.robot_count, len(plan.robot_slots) or len(from_world))
     slots = fleet_slots(count, plan.robot_slots, from_world)
     plan.fleet = resolve_starts(slots, plan.world, plan.map_yaml, _chassis_radius_m(plan.config))
@@ -388,7 +394,8 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
                    help="with --start-seed: delay each service's start by a random 0..S s (default %(default)s)")
     p.add_argument("--vda5050", action="store_true", help="also start the VDA 5050 interface with an embedded MQTT "
-                   "broker on 127.0.0.1 (services/vda5050)")
+                   "broker on 127.0.0.1 (services/vda5050); with several robots one per robot, its serialNumber "
+                   "the robot's id, all on the one broker")
     p.add_argument("--mqtt-port", type=int, default=1883, help="embedded MQTT broker port (default %(default)s)")
     p.add_argument("--no-embedded-broker", action="store_true",
                    help="with --vda5050: use the [vda5050] broker of the config (a site broker) instead")

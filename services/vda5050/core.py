@@ -175,6 +175,12 @@ def _error(error_type: str, level: str, description: str, refs: dict[str, Any]) 
             "errorReferences": [{"referenceKey": k, "referenceValue": str(v)} for k, v in refs.items()]}
 
 
+def reported_angle(theta_rad: float) -> float:
+    """An angle in (-pi, pi] rounded to 0.1 mrad for state and visualization, kept within the schemas' [-pi, pi]
+    (-3.14159 alone would round to -3.1416, below the minimum -3.14159265359)."""
+    return min(math.pi, max(-math.pi, round(theta_rad, 4)))
+
+
 def payload_digest(payload: bytes) -> str:
     """The reference of a received payload in errors: the first 16 hex digits of its SHA-256."""
     return hashlib.sha256(payload).hexdigest()[:16]
@@ -600,7 +606,7 @@ class Vehicle:
         if pose is None:
             return None
         sig = self.signals
-        out = {"x": round(pose[0], 4), "y": round(pose[1], 4), "theta": round(pose[2], 4), "mapId": self.s.map_id,
+        out = {"x": round(pose[0], 4), "y": round(pose[1], 4), "theta": reported_angle(pose[2]), "mapId": self.s.map_id,
                "positionInitialized": sig.localization_state != "localizing",
                "localizationScore": round(sig.match_score if sig.localization_state != "lost" else 0.0, 3)}
         if sig.spread_m > 0:
