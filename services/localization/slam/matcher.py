@@ -39,9 +39,12 @@ def score(grid: LikelihoodGrid, points: np.ndarray, pose: np.ndarray) -> float:
     return float(value.mean()) if len(value) else 0.0
 
 
-def translation_sharpness(grid: LikelihoodGrid, points: np.ndarray, pose: np.ndarray, step_m: float = 0.05) -> float:
-    """Smallest eigenvalue of the negative curvature (per m²) of the mean score under translation, from
-    central differences of ``step_m``: near zero when the scan slides freely along some direction (corridor)."""
+def translation_curvature(grid: LikelihoodGrid, points: np.ndarray, pose: np.ndarray,
+                          step_m: float = 0.05) -> np.ndarray:
+    """Negative curvature C (2x2, per m²) of the mean score under translation, from central differences of
+    ``step_m``: C_xx = −(s(+h,0) + s(−h,0) − 2s₀)/h², C_xy = −(s(+h,+h) − s(+h,−h) − s(−h,+h) + s(−h,−h))/4h².
+    Unlike the Gauss-Newton JᵀJ, whose squared gradients add up the grid's ripple along a wall, differences one
+    cell apart average it out: a corridor's axis shows as a near-zero eigenvalue."""
     s0 = score(grid, points, pose)
 
     def at(dx: float, dy: float) -> float:
@@ -51,15 +54,24 @@ def translation_sharpness(grid: LikelihoodGrid, points: np.ndarray, pose: np.nda
     cxx = (at(h, 0) + at(-h, 0) - 2 * s0) / h**2
     cyy = (at(0, h) + at(0, -h) - 2 * s0) / h**2
     cxy = (at(h, h) - at(h, -h) - at(-h, h) + at(-h, -h)) / (4 * h**2)
-    return float(np.linalg.eigvalsh(-np.array([[cxx, cxy], [cxy, cyy]]))[0])
+    return -np.array([[cxx, cxy], [cxy, cyy]])
+
+
+def translation_sharpness(grid: LikelihoodGrid, points: np.ndarray, pose: np.ndarray, step_m: float = 0.05) -> float:
+    """Smallest eigenvalue of ``translation_curvature``: near zero when the scan slides freely along some
+    direction (corridor)."""
+    return float(np.linalg.eigvalsh(translation_curvature(grid, points, pose, step_m))[0])
 
 
 def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndarray, *,
            iterations_per_level: int = 6, field_sigma: float = 0.3,
            prior_pose: np.ndarray | None = None, prior_information: np.ndarray | None = None,
-           min_step: float = 5e-4) -> MatchResult:
-    """Gauss-Newton from the coarsest to the finest level (see the module docstring); a step that raises the
-    cost is halved (up to twice), since the residuals do not vanish at the optimum."""
+           min_step: float = 5e-4, max_damping_tries: int = 5) -> MatchResult:
+    """Gauss-Newton from the coarsest to the finest level (see the module docstring) with Levenberg-Marquardt
+    damping: a step that raises the cost is re-solved from (H + λ·diag(H)) with λ = 0.1, 1, 10, ... (up to
+    ``max_damping_tries`` times) and λ shrinks tenfold after an accepted step. Near a wall's crest ∇M vanishes, so
+    JᵀJ underestimates the curvature and plain Gauss-Newton overshoots across the wall; damping shortens the step
+    there without giving up the direction along which the scan still pulls (a corridor's axis)."""
     pose = np.asarray(initial_pose, float).copy()
     inv_var = 1.0 / field_sigma**2
     has_prior = prior_information is not None and prior_pose is not None
@@ -79,6 +91,7 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
     hessian = np.zeros((3, 3))
     for grid in reversed(grids.levels):
         world, residual, grad, cost, diff = evaluate(grid, pose)
+        damping = 0.0
         for _ in range(iterations_per_level):
             jac = np.empty((len(points), 3))
             jac[:, 0] = grad[:, 0]
@@ -90,20 +103,22 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
             if has_prior and prior_information is not None:
                 system += prior_information
                 gradient = gradient + prior_information @ diff
-            try:
-                step = np.linalg.solve(system, gradient)
-            except np.linalg.LinAlgError:
-                break
             accepted = False
-            for _ in range(3):
+            step = np.zeros(3)
+            for _ in range(max_damping_tries + 1):
+                try:
+                    step = np.linalg.solve(system + damping * np.diag(np.diag(system)), gradient)
+                except np.linalg.LinAlgError:
+                    break
                 trial = pose + step
                 trial[2] = float(wrap_angle(trial[2]))
                 t_world, t_residual, t_grad, t_cost, t_diff = evaluate(grid, trial)
                 if t_cost <= cost:
                     pose, world, residual, grad, cost, diff = trial, t_world, t_residual, t_grad, t_cost, t_diff
                     accepted = True
+                    damping = 0.0 if damping <= 0.1 else damping / 10.0
                     break
-                step = 0.5 * step
+                damping = 0.1 if damping == 0.0 else damping * 10.0
             if not accepted or (abs(step[0]) + abs(step[1]) < min_step and abs(step[2]) < min_step):
                 break
     return MatchResult(pose, score(grids.levels[0], points, pose), hessian)
