@@ -116,3 +116,15 @@ def test_the_guard_sees_a_copy(tmp_path: Path) -> None:
     for helper, samples in forms.items():
         for sample in samples:
             assert any(re.search(p, sample) for p in COPIES[helper]), (helper, sample)
+
+
+def test_robot_pose_and_frame_prefers_map_odom_then_odometry_then_the_map_pose() -> None:
+    from services.common.se2 import robot_pose_and_frame
+
+    odom, map_odom, map_pose = (1.0, 0.0, 0.0), (0.0, 2.0, math.pi / 2), (5.0, 5.0, 0.0)
+    pose, frame = robot_pose_and_frame(odom, map_odom, map_pose) or ((0.0, 0.0, 0.0), "")
+    assert frame == "map" and pose == pytest.approx((0.0, 3.0, math.pi / 2))
+    assert robot_pose_and_frame(odom, None, None) == (odom, "odom")
+    assert robot_pose_and_frame(odom, None, map_pose) == (map_pose, "map")
+    assert robot_pose_and_frame(None, map_odom, map_pose) == (map_pose, "map")
+    assert robot_pose_and_frame(None, None, None) is None

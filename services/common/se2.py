@@ -100,3 +100,17 @@ def interpolate(stamps_s: np.ndarray, poses: np.ndarray, at_s: np.ndarray | floa
     y = np.interp(at, stamps, poses[:, 1])
     th = np.interp(at, stamps, unwrapped)
     return np.stack([x, y, wrap_angle(th)], axis=-1)
+
+
+def robot_pose_and_frame(odom_pose: Pose2 | None, map_odom: Pose2 | None,
+                         map_pose: Pose2 | None) -> tuple[Pose2, str] | None:
+    """The robot's best known pose and its frame, as a viewer shows it: ``map_odom ∘ odom_pose`` in ``map`` when
+    both are known; else the odometry pose in ``odom`` while no map pose exists; else the map pose itself."""
+    if odom_pose is not None:
+        if map_odom is not None:
+            return compose(map_odom, odom_pose), "map"
+        if map_pose is None:
+            return odom_pose, "odom"
+    if map_pose is not None:
+        return map_pose, "map"
+    return None

@@ -29,7 +29,7 @@ from proto.messages import (
     Transform2D,
     WheelStates,
 )
-from services.common.se2 import compose
+from services.common.se2 import robot_pose_and_frame
 
 #: topic (after ``agv/<id>/``) -> attribute of RobotTrack it updates
 TOPICS: dict[str, str] = {"odom": "odom", "tf/map_odom": "map_odom", "pose": "pose", "wheels": "wheels",
@@ -86,17 +86,10 @@ class RobotTrack:
 
     def map_pose(self) -> tuple[tuple[float, float, float], str] | None:
         """(pose, frame): the map pose when localization is known, else the odometry pose in ``odom``."""
-        if self.odom is not None:
-            o = self.odom.pose
-            if self.map_odom is not None:
-                t = self.map_odom
-                return compose((t.x, t.y, t.theta), (o.x, o.y, o.theta)), "map"
-            if self.pose is None:
-                return (o.x, o.y, o.theta), "odom"
-        if self.pose is not None:
-            p = self.pose.pose
-            return (p.x, p.y, p.theta), "map"
-        return None
+        o, t, p = self.odom, self.map_odom, self.pose
+        return robot_pose_and_frame(None if o is None else (o.pose.x, o.pose.y, o.pose.theta),
+                                    None if t is None else (t.x, t.y, t.theta),
+                                    None if p is None else (p.pose.x, p.pose.y, p.pose.theta))
 
     def faults(self) -> list[str]:
         """Everything an operator must know is wrong, in words."""

@@ -28,7 +28,7 @@ from proto.messages import (
     Twist2D,
     WheelStates,
 )
-from services.common.se2 import compose, transform_points
+from services.common.se2 import compose, robot_pose_and_frame, transform_points
 
 
 def finite(v: float, digits: int = 4) -> float | None:
@@ -80,17 +80,10 @@ class RobotView:
 
     def robot_pose(self) -> tuple[tuple[float, float, float], str] | None:
         """(pose, frame) of the robot: map frame when localization is up, else odom."""
-        if self.odom is not None:
-            o = self.odom.pose
-            if self.map_odom is not None:
-                t = self.map_odom
-                return compose((t.x, t.y, t.theta), (o.x, o.y, o.theta)), "map"
-            if self.pose is None:
-                return (o.x, o.y, o.theta), "odom"
-        if self.pose is not None:
-            p = self.pose.pose
-            return (p.x, p.y, p.theta), "map"
-        return None
+        o, t, p = self.odom, self.map_odom, self.pose
+        return robot_pose_and_frame(None if o is None else (o.pose.x, o.pose.y, o.pose.theta),
+                                    None if t is None else (t.x, t.y, t.theta),
+                                    None if p is None else (p.pose.x, p.pose.y, p.pose.theta))
 
     def map_pose(self) -> tuple[float, float, float] | None:
         found = self.robot_pose()
