@@ -9,8 +9,9 @@ and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
 
 - ``drive.loop_hz`` / ``drive.jitter_p99_ms``: the loop's own measurement (``wheels``: mean rate and p99 of
   |period - 1 ms| over its last 2000 periods) after ``settle_s`` of running without commands.
-- ``drive.cmd_to_can_p99_ms``: ``cmd_vel`` put by a Zenoh session with the services' settings (a peer, as nav
-  publishes it: directly to drive once the router has introduced them) until
+- ``drive.cmd_to_can_p99_ms``: a command put on the drive's command key (``drive.command_source``, by default
+  ``safety/cmd_vel``: the collision monitor's output) by a Zenoh session with the services' settings (a peer, as the
+  monitor publishes it: directly to drive once the router has introduced them) until
   the RPDO1 frame carrying the new traction speed goes onto the simulated bus (the bus's own frame timestamp, seen
   by a CAN client on it). The command alternates between +vy and -vy (the wheels stay at +-90 deg, the traction
   speed changes sign, whichever of the two equivalent module states the optimiser holds) and the acceleration limits
@@ -219,7 +220,8 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         deadline = time.monotonic() + 10.0  # the direct link to drive comes up through the router's gossip
         while not list(client.info.peers_zid()) and time.monotonic() < deadline:
             time.sleep(0.05)
-        pub = client.declare_publisher(keys("cmd_vel"), express=True)
+        from services.drive.config import DriveConfig
+        pub = client.declare_publisher(keys(DriveConfig().command_source), express=True)
         vy = 0.08
         rpm = vy * 30.0 * 60.0 / (2.0 * math.pi * 0.1)  # motor units of the default robot (eq. 7)
         for _ in range(50):  # steer the wheels to 90 deg first
