@@ -25,6 +25,8 @@ EXAMPLES: dict[type, m.Message] = {
     m.ObstacleRequest: m.ObstacleRequest(action="add", rect=[0, 0, 1, 1]),
     m.ObstacleReply: m.ObstacleReply(ok=True, ids=["a"]),
     m.TeleportRequest: m.TeleportRequest(pose=P),
+    m.LocalizationUpdate: m.LocalizationUpdate(ok=True, message="updated", pose=m.PoseWithCovariance(pose=P),
+                                               map_odom=m.Transform2D(x=0.1, theta=0.02)),
 }
 
 
