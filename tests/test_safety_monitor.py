@@ -170,7 +170,7 @@ def test_no_contact_backing_into_a_wall_the_scanner_cannot_see_any_more():
         mon.update_scan(seen_from(pose, wall), t, pose, LMS111)
         t += dt
     x = 0.0
-    for _ in range(2000):
+    for _ in range(1200):
         pose = (x, 0.0, 0.0)
         mon.update_scan(seen_from(pose, wall), t, pose, LMS111)
         x += mon.filter(-0.1, 0.0, 0.0, now=t).twist[0] * dt
