@@ -290,3 +290,20 @@ def test_a_slow_search_is_followed_by_rest_so_the_controller_keeps_its_share() -
     assert nav.plan_due(8.1)
     nav.goal.plan_now = True  # a blocked path replans at once whatever the duty
     assert nav.plan_due(2.5)
+
+
+def test_a_relaxed_plan_request_is_a_snapshot_the_costmap_update_cannot_change() -> None:
+    """The search runs on a worker thread while the loop updates the global costmap in place. A relaxed request
+    (no clearance preference) used to hand the search the live grid: the start cell, read as free by the planner's
+    checks, could turn inscribed before the search copied it, which closed it before the first expansion:
+    "no path: the goal is not reachable from the start (0 cells searched)"."""
+    nav = Navigator(NavConfig(), RobotSpec())
+    nav.set_map(np.zeros((100, 400), dtype=np.int8), 0.05, 0.0, 0.0)
+    assert nav.start_goal(0.0, (18.0, 2.5, 0.0))[0]
+    for relaxed in (False, True):
+        nav.goal.relaxed = relaxed
+        req = nav.make_request((1.0, 2.5, 0.0), 0.0)
+        assert not np.shares_memory(req.cost, nav.global_costmap.master.cost), relaxed
+        nav.global_costmap.master.cost[:] = LETHAL  # the loop thread rewrites the grid while the search runs
+        assert nav.compute_plan(req).error == "", relaxed
+        nav.global_costmap.set_map(np.zeros((100, 400), dtype=np.int8), 0.05, 0.0, 0.0)

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from services.safety.monitor import CollisionMonitor, SafetyParams, scan_points
+from services.common.se2 import inverse, transform_points
+from services.safety.monitor import CollisionMonitor, FieldOfView, SafetyParams, scan_points
 
 R = 0.63
 
@@ -102,3 +103,77 @@ def test_no_contact_when_commands_drive_into_a_wall_at_full_speed():
         x += vx * dt
     assert wall - x - R > 0.0
     assert wall - x - R < 0.06  # it does get close: the zones do not keep it needlessly far
+
+
+# --------------------------------------------------------------------------- the scanner's blind sector
+
+LMS111 = FieldOfView(mount=(0.45, 0.0, 0.0), angle_min=-3 * math.pi / 4, angle_max=3 * math.pi / 4)
+
+
+def seen_from(odom_pose: tuple[float, float, float], odom_points: np.ndarray) -> np.ndarray:
+    """What the front 270° scanner sees of odom-frame points from a base pose (base frame; no occlusion)."""
+    base = transform_points(inverse(odom_pose), odom_points)
+    return base[LMS111.sees(base)]
+
+
+def test_field_of_view_covers_270_degrees_in_front_of_the_scanner():
+    pts = np.array([[2.0, 0.0], [0.45, 1.0], [0.45, -1.0], [-1.0, 0.0], [-1.0, 1.2], [-1.0, 1.6]])
+    assert LMS111.sees(pts).tolist() == [True, True, True, False, False, True]
+
+
+def test_a_wall_behind_the_robot_stops_a_back_up_it_saw_before_turning():
+    """The scanner cannot see behind the base. A wall seen ahead is remembered (odometry) once the robot has turned
+    its back to it, and backing into it stops; without the memory the back-up was judged on no points at all."""
+    wall = np.column_stack((np.full(301, -(R + 0.03)), np.linspace(-3.0, 3.0, 301)))  # odom frame, x = -0.66
+    mon = CollisionMonitor(SafetyParams())
+    facing = (0.0, 0.0, math.pi)
+    mon.update_scan(seen_from(facing, wall), 0.0, facing, LMS111)
+    assert mon.filter(0.2, 0.0, 0.0, now=0.0).action == "stop"  # ahead: seen
+    for k in range(1, 33):  # turn in place to face away from it, a scan every 0.1 rad
+        pose = (0.0, 0.0, math.pi - 0.1 * k)
+        mon.update_scan(seen_from(pose, wall), 0.04 * k, pose, LMS111)
+    now = 0.04 * 32
+    assert np.abs(seen_from(pose, wall)[:, 1]).min() > R  # the scan shows nothing of the wall the back-up meets
+    v = mon.filter(-0.1, 0.0, 0.0, now=now)
+    assert v.action == "stop" and v.twist[:2] == (0.0, 0.0), v
+    assert mon.filter(0.2, 0.0, 0.0, now=now).action == "clear"  # driving away from it is fine
+    forgetful = CollisionMonitor(SafetyParams())
+    forgetful.update_scan(seen_from(pose, wall), now)  # no odometry: the scan alone, as before
+    assert forgetful.filter(-0.1, 0.0, 0.0, now=now).action == "clear"
+
+
+def test_a_remembered_point_is_forgotten_once_the_scanner_sees_the_place_again():
+    person = np.array([[-0.9, 0.0]])  # behind the robot, seen earlier, then walked away
+    mon = CollisionMonitor(SafetyParams())
+    mon.update_scan(seen_from((0.0, 0.0, math.pi), person), 0.0, (0.0, 0.0, math.pi), LMS111)
+    mon.update_scan(np.zeros((0, 2)), 0.1, (0.0, 0.0, 0.0), LMS111)  # turned back: it is behind, remembered
+    assert mon.filter(-0.1, 0.0, 0.0, now=0.1).action != "clear"
+    mon.update_scan(np.zeros((0, 2)), 0.2, (0.0, 0.0, math.pi), LMS111)  # looked again: nobody there
+    mon.update_scan(np.zeros((0, 2)), 0.3, (0.0, 0.0, 0.0), LMS111)
+    assert mon.filter(-0.1, 0.0, 0.0, now=0.3).action == "clear"
+    # seen, then 1.2 m of driving away from it: beyond memory_travel_m (odometry drift), dropped
+    mon = CollisionMonitor(SafetyParams(memory_travel_m=1.0))
+    mon.update_scan(seen_from((0.0, 0.0, math.pi), person), 0.0, (0.0, 0.0, math.pi), LMS111)
+    for k in range(7):
+        mon.update_scan(np.zeros((0, 2)), 0.1 * (k + 1), (0.2 * k, 0.0, 0.0), LMS111)
+        assert len(mon.points) == (1 if 0.2 * k <= 1.0 + 1e-9 else 0), k  # judged while remembered
+
+
+def test_no_contact_backing_into_a_wall_the_scanner_cannot_see_any_more():
+    """Closed loop: the robot sees a wall, turns its back to it and is told to back up at full speed; the
+    remembered points stop it short of the wall."""
+    wall = np.column_stack((np.full(301, -1.5), np.linspace(-3.0, 3.0, 301)))
+    mon = CollisionMonitor(SafetyParams())
+    t, dt = 0.0, 0.02
+    for k in range(80):  # turn from facing the wall to facing away at 0.5 rad/s
+        pose = (0.0, 0.0, math.pi - min(0.01 * k * 4, math.pi))
+        mon.update_scan(seen_from(pose, wall), t, pose, LMS111)
+        t += dt
+    x = 0.0
+    for _ in range(1200):
+        pose = (x, 0.0, 0.0)
+        mon.update_scan(seen_from(pose, wall), t, pose, LMS111)
+        x += mon.filter(-0.1, 0.0, 0.0, now=t).twist[0] * dt
+        t += dt
+    assert x - R - (-1.5) > 0.0  # never touched
+    assert x - R - (-1.5) < 0.06  # and it did back up to it

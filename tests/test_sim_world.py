@@ -157,3 +157,45 @@ def test_render_map_names_a_bad_world(tmp_path, capsys) -> None:
 
     assert main(["--world", "nope", "--out", str(tmp_path / "w")]) == 2
     assert "no built-in world 'nope'" in capsys.readouterr().err
+
+
+def brute_clearance(world: World, x: float, y: float) -> float:
+    """Distance from (x, y) to every solid cell square (and the solid outside of the extent), by brute force."""
+    res = world.resolution_m
+    rows, cols = np.nonzero(np.pad(world.solid, 1, constant_values=True))
+    x0 = world.origin_xy[0] + (cols - 1) * res
+    y0 = world.origin_xy[1] + (rows - 1) * res
+    dx = np.maximum.reduce([x0 - x, np.zeros_like(x0), x - (x0 + res)])
+    dy = np.maximum.reduce([y0 - y, np.zeros_like(y0), y - (y0 + res)])
+    return float(np.hypot(dx, dy).min())
+
+
+def block_world() -> World:
+    """8 m x 8 m of free 0.25 m cells with one solid cell covering [2.5, 2.75) x [2.5, 2.75)."""
+    solid = np.zeros((32, 32), dtype=bool)
+    solid[10, 10] = True
+    return World(name="block", resolution_m=0.25, origin_xy=(0.0, 0.0), solid=solid)
+
+
+def test_contact_is_judged_at_the_point_not_at_its_cell_centre() -> None:
+    w = block_world()
+    # 0.74 m left of the block's face, but in a cell whose centre is 0.615 m from it: no contact for a 0.63 m disc
+    assert w.clearance_m(1.76, 2.625) == pytest.approx(0.74)
+    assert not w.circle_collides(1.76, 2.625, 0.63)
+    # diagonally 0.368 m from the block's corner, in a cell whose centre is farther: a 0.5 m disc touches it
+    assert w.clearance_m(2.24, 2.24) == pytest.approx(math.hypot(0.26, 0.26))
+    assert w.circle_collides(2.24, 2.24, 0.5)
+    assert w.clearance_m(2.6, 2.6) == 0.0
+
+
+def test_clearance_matches_brute_force_on_a_cluttered_raster() -> None:
+    rng = np.random.default_rng(4)
+    solid = rng.random((40, 60)) < 0.08
+    glass = solid & (rng.random((40, 60)) < 0.5)
+    w = World(name="clutter", resolution_m=0.1, origin_xy=(-1.0, 2.0), solid=solid, glass=glass)
+    for x, y in zip(rng.uniform(-1.0, 5.0, 300), rng.uniform(2.0, 6.0, 300), strict=True):
+        expected = 0.0 if w.is_solid(x, y) else brute_clearance(w, x, y)
+        assert w.clearance_m(x, y) == pytest.approx(expected, abs=1e-9), (x, y)
+        # a contact test against 0.3 m: exact up to 0.3 m, a lower bound above it
+        quick = w.clearance_m(x, y, exact_within_m=0.3)
+        assert quick == pytest.approx(expected, abs=1e-9) if expected <= 0.3 else 0.3 < quick <= expected + 1e-9

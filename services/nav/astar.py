@@ -247,10 +247,14 @@ def planning_cost(costmap: Costmap2D, distance_m: np.ndarray | None, inscribed_r
                   ) -> np.ndarray:
     """The costmap plus a clearance preference: cells within ``clearance_m`` beyond the inscribed radius get a
     cost rising linearly to 252 towards the inscribed edge (max with the costmap's own cost). With the paper's
-    inflation radius only 15 mm larger than the robot, this keeps planned paths off walls and corners."""
+    inflation radius only 15 mm larger than the robot, this keeps planned paths off walls and corners.
+
+    Always a new array: the search runs on a worker thread while the loop updates the costmap in place, so a view
+    of the live grid would let the start cell's cost change between the planner's checks and its search (a start
+    read as free, then inflated: closed before the first expansion, "no path (0 cells searched)")."""
     cost = costmap.cost
     if distance_m is None or clearance_m <= 0:
-        return cost
+        return cost.copy()
     d = distance_m - inscribed_radius_m
     extra = np.zeros(cost.shape, dtype=np.uint8)
     band = (d > 0) & (d < clearance_m)

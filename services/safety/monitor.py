@@ -17,6 +17,14 @@ wins:
   speed falls with the distance left and the robot can always stop before contact.
 
 No scan newer than ``scan_timeout_s`` (or a non-finite command) gives a zero twist: the monitor fails safe.
+
+Blind sector: a 270° scanner mounted at the front cannot see behind the robot, so a back-up or a sideways move
+into that wedge would be judged on no points at all. With an odometry pose at each scan, the monitor keeps a
+memory (Nav2's observation persistence, in the odom frame): points within ``memory_radius_m`` of the base that
+the current scan cannot see (bearing from the scanner outside its field of view) are judged with the current scan's
+points. A point back in the field of view is forgotten (the scan now says what is there: turning in place, which is
+never limited, clears a person who walked away), and so is one seen more than ``memory_travel_m`` of odometry
+travel ago (odometry drifts with distance, not with time: a robot standing still forgets nothing).
 """
 
 from __future__ import annotations
@@ -26,6 +34,8 @@ from dataclasses import dataclass
 
 import msgspec
 import numpy as np
+
+from services.common.se2 import inverse, transform_points, wrap_angle
 
 
 class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -40,6 +50,12 @@ class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     scan_timeout_s: float = 0.5
     #: translation speeds below this (m/s) are passed without checks (rotation-only commands)
     min_translation_mps: float = 1e-4
+    #: odometry travel (m) over which points that left the scanner's field of view are remembered (0: no memory)
+    memory_travel_m: float = 5.0
+    #: only points this close to the base (m) are remembered
+    memory_radius_m: float = 3.0
+    #: remembered points are merged on a grid of this cell (m), keeping the latest sighting
+    memory_cell_m: float = 0.02
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -50,6 +66,8 @@ class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "time_before_collision_s": self.time_before_collision_s > 0,
             "simulation_step_s": 0 < self.simulation_step_s <= self.time_before_collision_s,
             "scan_timeout_s": self.scan_timeout_s > 0, "min_translation_mps": self.min_translation_mps >= 0,
+            "memory_travel_m": self.memory_travel_m >= 0, "memory_radius_m": self.memory_radius_m > 0,
+            "memory_cell_m": self.memory_cell_m > 0,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
@@ -67,6 +85,24 @@ class Verdict:
     scale: float
     nearest_m: float
     reason: str
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """Where the scanner sits on the base (x m, y m, theta rad) and the bearings it sees, [angle_min, angle_max]
+    (rad, scanner frame)."""
+
+    mount: tuple[float, float, float]
+    angle_min: float
+    angle_max: float
+
+    def sees(self, points: np.ndarray) -> np.ndarray:
+        """Which base-frame points (n, 2) lie at a bearing the scanner covers."""
+        if self.angle_max - self.angle_min >= 2 * math.pi:
+            return np.ones(len(points), dtype=bool)
+        local = np.asarray(transform_points(inverse(self.mount), points), dtype=np.float64).reshape(-1, 2)
+        offset = np.mod(wrap_angle(np.arctan2(local[:, 1], local[:, 0]) - self.angle_min), 2 * math.pi)
+        return np.asarray(offset <= self.angle_max - self.angle_min, dtype=bool)
 
 
 def scan_points(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float,
@@ -88,10 +124,52 @@ class CollisionMonitor:
         self.params = params
         self.points = np.zeros((0, 2))
         self.scan_stamp = -math.inf
+        self.memory = np.zeros((0, 2))  # odom frame (m)
+        self.memory_seen_at_m = np.zeros(0)  # the odometry travel when each point was last seen (m)
+        self.travelled_m = 0.0
+        self.last_odom: tuple[float, float, float] | None = None
 
-    def update_scan(self, points: np.ndarray, stamp: float) -> None:
-        self.points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    def update_scan(self, points: np.ndarray, stamp: float, odom_pose: tuple[float, float, float] | None = None,
+                    view: FieldOfView | None = None) -> None:
+        """The newest scan's base-frame points; with the base's odometry pose at the scan and the scanner's field of
+        view, also the remembered points the scan cannot see (module docstring). Without them, the memory is
+        dropped: points cannot be carried without odometry."""
+        current = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         self.scan_stamp = stamp
+        if odom_pose is None or view is None or self.params.memory_travel_m <= 0:
+            self.memory, self.memory_seen_at_m = np.zeros((0, 2)), np.zeros(0)
+            self.last_odom = None
+            self.points = current
+            return
+        if self.last_odom is not None:
+            self.travelled_m += math.hypot(odom_pose[0] - self.last_odom[0], odom_pose[1] - self.last_odom[1])
+        self.last_odom = odom_pose
+        remembered, seen_at_m = self._remembered(odom_pose, view)
+        self.points = np.concatenate((current, remembered))
+        near = np.hypot(self.points[:, 0], self.points[:, 1]) <= self.params.memory_radius_m
+        self._remember(transform_points(odom_pose, self.points[near]),
+                       np.concatenate((np.full(len(current), self.travelled_m), seen_at_m))[near])
+
+    def _remembered(self, odom_pose: tuple[float, float, float], view: FieldOfView) -> tuple[np.ndarray, np.ndarray]:
+        """Base-frame memory points that are near, outside the field of view and seen within ``memory_travel_m``
+        of travel, with the travel at which each was seen."""
+        base = np.asarray(transform_points(inverse(odom_pose), self.memory), dtype=np.float64).reshape(-1, 2)
+        keep = ((self.travelled_m - self.memory_seen_at_m <= self.params.memory_travel_m)
+                & (np.hypot(base[:, 0], base[:, 1]) <= self.params.memory_radius_m))
+        if keep.any():
+            keep[keep] = ~view.sees(base[keep])
+        return base[keep], self.memory_seen_at_m[keep]
+
+    def _remember(self, odom_points: np.ndarray, seen_at_m: np.ndarray) -> None:
+        """Store points merged on a ``memory_cell_m`` grid, the latest sighting of a cell winning."""
+        if odom_points.shape[0] == 0:
+            self.memory, self.memory_seen_at_m = np.zeros((0, 2)), np.zeros(0)
+            return
+        order = np.argsort(-seen_at_m, kind="stable")
+        cells = np.floor(odom_points[order] / self.params.memory_cell_m).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        pick = order[first]
+        self.memory, self.memory_seen_at_m = odom_points[pick], seen_at_m[pick]
 
     def scan_fresh(self, now: float) -> bool:
         return now - self.scan_stamp <= self.params.scan_timeout_s

@@ -1,10 +1,12 @@
-"""The safety service's asyncio shell: ``cmd_vel`` + ``scan`` in, ``safety/cmd_vel`` + ``safety/state`` out.
+"""The safety service's asyncio shell: ``cmd_vel``, ``scan``, ``odom`` in; ``safety/cmd_vel``, ``safety/state`` out.
 
 Every command (nav's, the HMI jog's) is filtered by the collision monitor and forwarded at once on
 ``safety/cmd_vel``, the drive's only command input. A watch every ``watch_period_s`` re-filters the last command
 (while younger than ``cmd_timeout_s``) against the newest scan, so an obstacle that appears, or a scan that stops,
 changes the command within one watch period even when the commander is silent or slow. ``safety/state`` (latched)
 carries the verdict; it is published at once when the action changes and at ``state_publish_hz`` otherwise.
+``odom`` (the newest pose, when younger than ``scan_timeout_s`` at a scan) lets the monitor remember what left the
+scanner's field of view; without it each scan is judged alone.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from proto import array
 from proto import messages as m
 from services.common.service import ServiceContext
 from services.safety.config import SafetyConfig
-from services.safety.monitor import CollisionMonitor, Verdict, scan_points
+from services.safety.monitor import CollisionMonitor, FieldOfView, Verdict, scan_points
 
 
 class SafetyNode:
@@ -36,11 +38,13 @@ class SafetyNode:
         self.last_sent: tuple[float, float, float] | None = None
         self.last_action = ""
         self.last_state_at = -math.inf
+        self.odom: m.Odometry | None = None
         self.interventions = 0
         self.stats = ctx.node.extra_stats
         self.stats.update(commands=0, interventions=0, stops=0, bad_scans=0)
         ctx.node.subscribe("scan", self.on_scan)
         ctx.node.subscribe("cmd_vel", self.on_cmd)
+        ctx.node.subscribe("odom", self.on_odom)
         self.log.info("collision monitor: footprint radius %.3f m, stop %.2f m, slow-down %.2f m, look-ahead %.1f s",
                       self.monitor.params.robot_radius_m, self.monitor.params.stop_margin_m,
                       self.monitor.params.slowdown_margin_m, self.monitor.params.time_before_collision_s)
@@ -60,7 +64,19 @@ class SafetyNode:
         points = scan_points(ranges, msg.angle_min, msg.angle_increment, msg.range_min, msg.range_max,
                              (msg.mount.x, msg.mount.y, msg.mount.theta))
         # freshness is judged on this service's clock: a scan counts from when it arrived, never from the future
-        self.monitor.update_scan(points, min(msg.stamp, self.ctx.clock.now()))
+        now = self.ctx.clock.now()
+        odom = self.odom
+        pose = None
+        if odom is not None and abs(msg.stamp - odom.stamp) <= self.cfg.scan_timeout_s:
+            pose = (odom.pose.x, odom.pose.y, odom.pose.theta)
+        last_beam = msg.angle_min + max(len(ranges) - 1, 0) * msg.angle_increment
+        view = FieldOfView((msg.mount.x, msg.mount.y, msg.mount.theta), min(msg.angle_min, last_beam),
+                           max(msg.angle_min, last_beam))
+        self.monitor.update_scan(points, min(msg.stamp, now), pose, view)
+
+    def on_odom(self, msg: m.Odometry) -> None:
+        if all(math.isfinite(v) for v in (msg.stamp, msg.pose.x, msg.pose.y, msg.pose.theta)):
+            self.odom = msg
 
     def on_cmd(self, msg: m.Twist2D) -> None:
         self.stats["commands"] += 1

@@ -63,7 +63,7 @@ class Fleet:
         others = [self.sims[o] for o in self.ids if o != rid]
 
         def margin(x: float, y: float) -> float:
-            m = world.clearance_m(x, y) - radius
+            m = world.clearance_m(x, y, exact_within_m=radius) - radius
             for o in others:
                 r = o.robot
                 m = min(m, math.hypot(x - r.x, y - r.y) - radius - o.footprint_radius_m)

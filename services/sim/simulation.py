@@ -47,7 +47,7 @@ class Simulation:
             m.traction.tau_s = cfg.traction_tau_s
         self.footprint_radius_m = cfg.footprint_radius_m or spec.chassis_radius_m
         radius = self.footprint_radius_m
-        self.robot.margin = lambda x, y: world.clearance_m(x, y) - radius
+        self.robot.margin = lambda x, y: world.clearance_m(x, y, exact_within_m=radius) - radius
         start = cfg.start_pose or list(world.start_pose)
         self.robot.teleport(*map(float, start))
         self.robot.collided = world.circle_collides(self.robot.x, self.robot.y, self.footprint_radius_m)

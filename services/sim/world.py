@@ -8,6 +8,12 @@ transparent to the lidar (the robot collides with them, the beams pass; the rend
 plan would); any ROS map YAML can be loaded instead (occupied and unknown cells are solid; a yawed origin is
 resampled onto an axis-aligned raster). Everything outside the extent is solid.
 
+Collision is exact geometry, as the lidar sees it: ``clearance_m(x, y)`` is the Euclidean distance from the point
+itself (not its cell's centre) to the nearest solid cell square, min over squares of |max(|p - c| - h, 0)| (c the
+square's centre, h half a cell). Only solid cells with a free 4-neighbour can be nearest (a k-d tree of their
+centres); the nearest square's centre lies within d_c + h (sqrt(2) - 1) of p, d_c the nearest centre's distance,
+since a square lies between its inscribed and circumscribed discs.
+
 Dynamic obstacles are rectangles outside the raster (so adding one costs nothing): ray casting and collision test
 them analytically. They appear and vanish on a schedule (sim time) or on request.
 
@@ -30,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from services.common.grid import axis_aligned
 from services.common.ros_map import write_ros_map
@@ -88,6 +95,9 @@ class World:
         self._rows_p = rows + 2
         edt = ndimage.distance_transform_edt(~padded).astype(np.float32)  # cells, centre to nearest solid centre
         self._edt_flat = edt.ravel()
+        # collision sees every solid cell (glass included), exactly: the faces of the squares, as the lidar does
+        self._boundary_tree = _boundary_tree(padded, self.origin_xy, self.resolution_m)
+        self._solid_flat_collision = padded.ravel().copy()
         # ray casting sees the opaque cells only
         if self.glass is not None:
             if self.glass.shape != self.solid.shape:
@@ -131,10 +141,23 @@ class World:
         rows, cols = self.solid.shape
         return not (0 <= r < rows and 0 <= c < cols) or bool(self.solid[r, c])
 
-    def clearance_m(self, x: float, y: float) -> float:
-        """Distance (m) from (x, y) to the nearest solid surface, raster (within half a cell) and dynamic rects."""
+    def clearance_m(self, x: float, y: float, exact_within_m: float = math.inf) -> float:
+        """Exact distance (m) from the point (x, y) to the nearest solid cell square (glass and outside the extent
+        included) or active dynamic rectangle; 0 inside a solid cell.
+
+        Where the cell's distance transform E (m, cell centre to the nearest solid centre) proves the raster farther
+        than ``exact_within_m`` (E - sqrt(2) res > it: the point is within res/sqrt(2) of its cell centre and a square
+        within res/sqrt(2) of its centre), that lower bound is returned instead: a contact test against a radius
+        needs exactness only near the radius, and the bound costs one lookup.
+        """
         i = self._padded_flat_index(x, y)
-        d = max(float(self._edt_flat[i]) - 0.5, 0.0) * self.resolution_m
+        lower = (float(self._edt_flat[i]) - SQRT2) * self.resolution_m
+        if self._solid_flat_collision[i]:
+            d = 0.0
+        elif lower > exact_within_m:
+            d = lower
+        else:
+            d = _distance_to_squares(self._boundary_tree, x, y, self.resolution_m / 2.0)
         for x0, y0, x1, y1 in self._active_rects_list:
             dx = max(x0 - x, 0.0, x - x1)
             dy = max(y0 - y, 0.0, y - y1)
@@ -436,6 +459,32 @@ def _check_rect(rect, what: str) -> tuple[float, float, float, float]:
     if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or vals[0] >= vals[2] or vals[1] >= vals[3]:
         raise WorldError(f"{what}: expected finite [x_min, y_min, x_max, y_max] with min < max, got {rect!r}")
     return vals
+
+
+def _boundary_tree(padded_solid: np.ndarray, origin_xy: tuple[float, float], res_m: float) -> cKDTree | None:
+    """k-d tree of the centres (m) of the solid cells of a padded raster that have a free 4-neighbour."""
+    free = ~padded_solid
+    near_free = np.zeros_like(free)
+    near_free[1:, :] |= free[:-1, :]
+    near_free[:-1, :] |= free[1:, :]
+    near_free[:, 1:] |= free[:, :-1]
+    near_free[:, :-1] |= free[:, 1:]
+    rows, cols = np.nonzero(padded_solid & near_free)
+    if rows.size == 0:
+        return None
+    centres = np.column_stack((origin_xy[0] + (cols - 0.5) * res_m, origin_xy[1] + (rows - 0.5) * res_m))
+    return cKDTree(centres)
+
+
+def _distance_to_squares(tree: cKDTree | None, x: float, y: float, half_m: float) -> float:
+    """Distance from (x, y) to the nearest square of half side ``half_m`` centred on a point of ``tree``."""
+    if tree is None:
+        return math.inf
+    nearest_centre_m, _ = tree.query((x, y))
+    candidates = tree.query_ball_point((x, y), float(nearest_centre_m) + half_m * (SQRT2 - 1.0) + 1e-9)
+    c = tree.data[candidates]
+    gap = np.maximum(np.abs(c - (x, y)) - half_m, 0.0)
+    return float(np.sqrt((gap * gap).sum(axis=1)).min())
 
 
 def _free_run_table(solid: np.ndarray) -> np.ndarray:
