@@ -285,6 +285,26 @@ class GroundTruth(Message):
     contact_with: str = ""
 
 
+ServiceEventType = Literal["request_received", "response_sent"]
+
+
+class ServiceEvent(Message):
+    """One step of a query as the service answering it saw it, published on ``<query>/_service_event`` (rosbag2's
+    service introspection, service_msgs/ServiceEventInfo) so that a recording holds the requests a service acted on
+    and ``zagv replay`` can issue them again. ``request_received``: the request has taken effect (``request``: its
+    msgpack payload); ``response_sent``: the answer (``response``), served on the message of topic ``input_topic``
+    stamped ``input_stamp`` (s) (``localization/nomotion``: the scan the update ran on; empty and 0: none).
+    ``stamp``: the service's clock (s); ``sequence`` pairs the two events of one request."""
+
+    stamp: float
+    event: ServiceEventType
+    sequence: int
+    request: bytes = b""
+    response: bytes = b""
+    input_topic: str = ""
+    input_stamp: float = 0.0
+
+
 # --------------------------------------------------------------------------- queries
 
 

@@ -23,7 +23,13 @@ TOPICS: dict[str, type[m.Message]] = {
     "nav/costmap": m.OccupancyGrid,
     "clock": m.Clock,
     "sim/ground_truth": m.GroundTruth,
+    "localization/nomotion/_service_event": m.ServiceEvent,
+    "localization/initial_pose/_service_event": m.ServiceEvent,
+    "localization/global/_service_event": m.ServiceEvent,
 }
+
+#: suffix of a query's service-event topic (``localization/nomotion`` -> ``localization/nomotion/_service_event``)
+SERVICE_EVENT_SUFFIX = "/_service_event"
 
 #: query name -> (request type, reply type)
 QUERIES: dict[str, tuple[type[m.Message], type[m.Message]]] = {

@@ -13,15 +13,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from proto import Keys
+from proto import Keys, codec
 from proto.messages import (
     Empty,
     InitialPoseRequest,
     LaserScan,
+    LocalizationUpdate,
     OccupancyGrid,
     Odometry,
     Pose2D,
     PoseWithCovariance,
+    ServiceEvent,
     Transform2D,
 )
 from services.common.node import Node
@@ -109,6 +111,8 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
     tfs: list[Transform2D] = []
     client.subscribe("pose", poses.append)
     client.subscribe("tf/map_odom", tfs.append)
+    events: list[ServiceEvent] = []
+    client.subscribe("localization/nomotion/_service_event", events.append)
     start = (1.0, 3.0, 0.0)
     service = Service(router, tmp_path, map_yaml, "loc1", "--set", "localization.initial_pose_x=1.0",
                       "--set", "localization.initial_pose_y=3.0").start()
@@ -159,6 +163,11 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
         await wait_for(lambda: any(p.stamp == answer.pose.stamp for p in poses[n:])
                        and any(t.stamp == answer.map_odom.stamp and t.x == answer.map_odom.x for t in tfs),
                        timeout_s=10, message="the nomotion update's pose and map->odom were not published")
+        # ... and published the request and its answer as service events (what a recording replays)
+        await wait_for(lambda: len(events) == 2, timeout_s=10, message="no localization/nomotion service events")
+        assert [(e.event, e.sequence) for e in events] == [("request_received", 1), ("response_sent", 1)]
+        assert (events[1].input_topic, events[1].input_stamp) == ("scan", answer.pose.stamp)
+        assert codec.decode_as(LocalizationUpdate, events[1].response) == answer
 
         pose_file = tmp_path / "localization_pose.json"
         await wait_for(lambda: pose_file.is_file() and json.loads(pose_file.read_text())["x"] > 9.0, timeout_s=10)

@@ -39,6 +39,8 @@ AMCL_SEED = 7
 #: sim seconds the robot stands still at the start of the bag (a fresh localization settles in a few seconds at rest)
 REST_BEFORE_DRIVING_S = 10.0
 BLACKBOX_MINUTE_S = 60.0
+#: covariance (x, y, theta; m^2, rad^2) of the initial pose set at the start of the bag (the scenario runner's)
+INITIAL_COVARIANCE = [0.0025, 0.0, 0.0, 0.0, 0.0025, 0.0, 0.0, 0.0, 0.003]
 
 
 @dataclass
@@ -149,12 +151,22 @@ async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
     initial pose of its configuration, so that a replay into a fresh localization starts from the same prior.
     Returns the runs and the sim time at which the ready stack was first seen publishing."""
-    from services.cli.scenario import Client, run_goal, wait_until
+    from services.cli.scenario import Client, query_until, run_goal, wait_until
 
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:
         await wait_until(lambda: c.truth is not None and c.odom_count > 5, "no ground truth and odometry", 60.0)
         ready_sim_s = c.sim_time
+        # the filter is initialised inside the bag, as an operator would at the start of a session: the recording
+        # holds that request (localization's service events), and a replay issues it again before the same scan, so
+        # the replayed filter starts where the live one did (AMCL's generator restarts from its seed at each
+        # initialisation) instead of from whatever the live one had made of the scans before the bag opened
+        assert c.truth is not None
+        start = m.Pose2D(x=c.truth.pose.x, y=c.truth.pose.y, theta=c.truth.pose.theta)
+        reply = await query_until(c, "localization/initial_pose",
+                                  m.InitialPoseRequest(pose=start, covariance=INITIAL_COVARIANCE), 60.0)
+        if not reply.ok:
+            raise RuntimeError(f"localization/initial_pose refused: {reply.message}")
         # the bag opens with the robot at rest: a localization fed the bag settles there (at-rest updates) as the
         # recorded one did before the bag opened, instead of converging while the robot already drives
         rest_until_s = c.sim_time + REST_BEFORE_DRIVING_S

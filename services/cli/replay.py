@@ -8,11 +8,19 @@ bag time and before each message) so that services started with ``--use-sim-time
 restart). Every message is put with blocking congestion control: a consumer that falls behind slows the replay down
 instead of losing messages. On a terminal, space pauses and resumes and ``s`` steps one message while paused. Topics
 whose type has no zagv counterpart, or whose messages are malformed, are reported per topic and skipped.
+
+Recorded service requests (rosbag2's ``--publish-service-requests``): when the bag holds ``<query>/_service_event``
+topics (``localization/nomotion``: the updates at rest nav asked for), their requests are issued again, each just
+before the message it was served on live (``services/recorder/service_requests.py``), and the replay waits (at most
+``--service-timeout`` s) until the service has taken it; the recorded events themselves are not published. At the
+end a line says how many were issued and how many were served on the same message as live. ``--no-service-requests``
+plays the bag's topics only.
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import contextlib
 import sys
 import threading
@@ -22,9 +30,15 @@ import zenoh
 
 from proto import codec
 from proto.keys import split_key
-from proto.messages import Clock
+from proto.messages import Clock, ServiceEvent
 from proto.registry import TOPICS
 from services.cli.common import add_client_options, client_keys, client_session
+from services.common.service_events import event_topic, query_of
+from services.recorder.service_requests import RecordedRequest, RequestSchedule, collect
+
+#: wall s a re-issued request's reply may take after the service took it (localization/nomotion answers on the next
+#: scan, which the replay publishes only once the request was taken)
+NOMOTION_REPLY_S = 30.0
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -41,6 +55,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-clock", action="store_true", help="do not publish clock")
     p.add_argument("--clock-period", type=float, default=0.01, help="clock period in bag s (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-service-requests", dest="service_requests", action="store_false",
+                   help="do not issue the bag's recorded service requests again (default: issue them)")
+    p.add_argument("--service-timeout", type=float, default=10.0,
+                   help="wall s to wait for a service to take a re-issued request (default %(default)s)")
     p.set_defaults(func=run_replay)
 
 
@@ -128,16 +146,23 @@ def run_replay(args: argparse.Namespace) -> int:
         return publishers[name]
 
     total = 0
+    requester: ServiceRequester | None = None
     try:
         with BagSource(args.path) as source:
             start_ns = source.start_ns + int(args.start * 1e9)
             end_ns = source.start_ns + int(args.end * 1e9) if args.end is not None else source.end_ns
             total_s = (end_ns - start_ns) / 1e9
+            requests = _recorded_requests(source, start_ns, end_ns) if args.service_requests else []
+            if requests:
+                requester = ServiceRequester(session, keys, {r.query for r in requests}, args.service_timeout)
             while True:
-                count = _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher)
+                count = _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher,
+                                   requests, requester)
                 total += count
                 if not args.loop:
                     break
+            if requester is not None:
+                print(f"zagv replay: {requester.summary()}", file=sys.stderr)
             for topic, reason in sorted(source.problems.items()):
                 print(f"zagv replay: skipped {source.skipped[topic]} message(s) on {topic}: {reason}",
                       file=sys.stderr)
@@ -147,6 +172,8 @@ def run_replay(args: argparse.Namespace) -> int:
         print(f"zagv replay: {exc}", file=sys.stderr)
         return 2
     finally:
+        if requester is not None:
+            requester.close()
         for pub in publishers.values():
             with contextlib.suppress(Exception):
                 pub.undeclare()  # type: ignore[attr-defined]
@@ -155,7 +182,100 @@ def run_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher) -> int:
+def _recorded_requests(source, start_ns: int, end_ns: int) -> list[RecordedRequest]:  # BagSource
+    """The service requests recorded in the bag's ``_service_event`` topics within [start_ns, end_ns]."""
+    names = {t.lstrip("/") for t in source.topics if query_of(t.lstrip("/")) is not None}
+    if not names:
+        return []
+    return collect((t_ns, name, msg) for t_ns, name, msg in source.messages(start_ns, end_ns, names)
+                   if isinstance(msg, ServiceEvent))
+
+
+def _ignore_reply(_reply: zenoh.Reply) -> None:
+    """The replies of re-issued requests: the service's own events say what it did."""
+
+
+class ServiceRequester:
+    """Issues recorded requests on the live session and waits until the service has taken each one (its own
+    ``request_received`` event); counts the requests served on the same input message as they were live."""
+
+    def __init__(self, session: zenoh.Session, keys, queries: set[str], timeout_s: float) -> None:  # Keys
+        self.session, self.keys, self.timeout_s = session, keys, timeout_s
+        self.cond = threading.Condition()
+        self.received: dict[str, int] = dict.fromkeys(queries, 0)
+        self.pending: dict[tuple[str, int], RecordedRequest] = {}  # (query, live sequence) -> the recorded one
+        self.issued = collections.Counter[str]()
+        self.same_input = collections.Counter[str]()
+        self.answered = collections.Counter[str]()
+        self.not_taken = collections.Counter[str]()
+        self.subs = [session.declare_subscriber(keys(event_topic(q)), self._on_event(q)) for q in sorted(queries)]
+
+    def _on_event(self, query: str):
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                ev = codec.decode_as(ServiceEvent, sample.payload.to_bytes())
+            except codec.ProtoDecodeError:
+                return
+            with self.cond:
+                if ev.event == "request_received":
+                    self.received[query] += 1
+                    self.cond.notify_all()
+                elif (req := self.pending.pop((query, ev.sequence), None)) is not None:
+                    self.answered[query] += 1
+                    if req.input_topic and ev.input_topic == req.input_topic \
+                            and abs(ev.input_stamp - req.input_stamp_s) < 1e-6:
+                        self.same_input[query] += 1
+                    self.cond.notify_all()
+        return on_sample
+
+    def issue(self, req: RecordedRequest) -> None:
+        """Send ``req`` (again while no queryable answers) and wait until the service has taken it."""
+        deadline = time.monotonic() + self.timeout_s
+        with self.cond:
+            before = self.received[req.query]
+        done = threading.Event()
+        retry_s = 0.05
+        while True:
+            done.clear()
+            self.session.get(self.keys(req.query), zenoh.handlers.Callback(_ignore_reply, done.set),
+                             payload=req.request, timeout=self.timeout_s + NOMOTION_REPLY_S)
+            with self.cond:
+                while self.received[req.query] == before and not done.is_set() and time.monotonic() < deadline:
+                    self.cond.wait(0.01)
+                if self.received[req.query] > before:
+                    # the live service numbers its requests from its own start
+                    self.pending[(req.query, self.received[req.query])] = req
+                    self.issued[req.query] += 1
+                    return
+            if time.monotonic() >= deadline:  # nothing took it: the service is not running (or too busy)
+                self.not_taken[req.query] += 1
+                return
+            time.sleep(min(retry_s, max(deadline - time.monotonic(), 0.0)))
+            retry_s = min(2 * retry_s, 0.5)
+
+    def summary(self, wait_s: float = 5.0) -> str:
+        """Waits up to ``wait_s`` for the last answers, then one line per query."""
+        deadline = time.monotonic() + wait_s
+        with self.cond:
+            while self.pending and time.monotonic() < deadline:
+                self.cond.wait(0.05)
+        parts = []
+        for q in sorted(self.received):
+            part = (f"{q}: {self.issued[q]} recorded request(s) issued again, {self.answered[q]} answered, "
+                    f"{self.same_input[q]} served on the same message as recorded")
+            if self.not_taken[q]:
+                part += f", {self.not_taken[q]} not taken by any service within {self.timeout_s:g} s"
+            parts.append(part)
+        return "; ".join(parts)
+
+    def close(self) -> None:
+        for sub in self.subs:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+
+def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control, publisher, requests=(),
+               requester: ServiceRequester | None = None) -> int:
     """One pass over [start_ns, end_ns]; returns the messages published."""
     clock_pub = None if args.no_clock else publisher("clock")
     rate = args.rate
@@ -177,9 +297,13 @@ def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control,
         if clock_pub is not None:
             clock_pub.put(codec.encode(Clock(stamp=t_ns / 1e9, speed_factor=rate if rate > 0 else 0.0)))
 
+    played = None if wanted is None else {remaps.get(n, n) for n in wanted}
+    schedule = RequestSchedule(list(requests), played) if requester is not None else None
     for t_ns, name, msg in source.messages(start_ns, end_ns, wanted):
         if name == "clock" or (wanted is not None and name not in wanted):
             continue
+        if schedule is not None and query_of(name) is not None:
+            continue  # the live service publishes its own events for the requests issued again
         target = remaps.get(name, name)
         if target not in TOPICS or type(msg) is not TOPICS[target]:
             source.problems.setdefault("/" + name, f"no zagv topic {target!r} of type {type(msg).__name__}")
@@ -195,6 +319,9 @@ def _play_once(args, source, start_ns, end_ns, total_s, wanted, remaps, control,
             next_tick += period_ns
         wait_until(t_ns)
         tick(t_ns)
+        if schedule is not None and requester is not None:
+            for req in schedule.due(t_ns, target, getattr(msg, "stamp", None)):
+                requester.issue(req)
         publisher(target).put(codec.encode(msg))
         count += 1
         if not args.quiet and time.monotonic() >= next_print:

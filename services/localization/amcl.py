@@ -305,6 +305,7 @@ class ParticleFilter:
         self.grid = grid
         self.params = params
         self.rng = rng or np.random.default_rng(None if params.random_seed < 0 else params.random_seed)
+        self._reseedable = rng is None and params.random_seed >= 0
         self.field = LikelihoodField(grid, params)
         #: occupied cells of the map (the refinement's pass-through check)
         self.occupied = grid.data >= OCCUPIED_MIN
@@ -367,6 +368,13 @@ class ParticleFilter:
         self.weights[:n] = 1.0 / n
 
     # ------------------------------------------------------------------ initialisation
+
+    def reseed(self) -> None:
+        """With ``random_seed`` >= 0 (and no generator of the caller's), restart the generator from the seed: the
+        filter's state after a (re)initialisation then depends only on the inputs since, whatever came before, so a
+        replay of a recording that holds the initialisation reproduces the filter exactly."""
+        if self._reseedable:
+            self.rng = np.random.default_rng(self.params.random_seed)
 
     def init_gaussian(self, pose: tuple[float, float, float], covariance: np.ndarray) -> None:
         """``max_particles`` particles drawn from N(pose, covariance) (3x3 over x, y, theta)."""
@@ -825,12 +833,14 @@ class Amcl:
             covariance = np.diag([0.25, 0.25, (math.pi / 12.0) ** 2])
         if not all(math.isfinite(v) for v in pose):
             raise ValueError(f"initial pose {pose} is not finite")
+        self.pf.reseed()
         self.pf.init_gaussian(pose, covariance)
         self._reinitialised()
         self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
     def global_localization(self) -> None:
+        self.pf.reseed()
         self.pf.init_uniform()
         self._reinitialised()
         self._set_state("localizing", "global localization")

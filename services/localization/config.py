@@ -19,7 +19,9 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
       saved by a previous run on the same map (written at ``save_pose_rate`` Hz).
     - ``laser_mount_from_scan``: use the LaserScan's ``mount``; false: the ``[robot]`` laser_mount_* values.
     - odom/scan synchronisation: the odom pose at a scan's stamp is interpolated from ``odom_history_s`` of odom;
-      a scan newer than the last odom waits for the next odom, or is extrapolated up to ``scan_odom_tolerance_s``.
+      a scan newer than the last odom waits for the odom that passes its stamp (at most ``scan_queue_size`` scans
+      wait, as in tf2's MessageFilter: ``scan_queue.py``); past that, the oldest is placed with the last odom pose
+      held up to ``scan_odom_tolerance_s``, or dropped.
       Odometry that jumps by more than ``odom_jump_m`` between two messages (drive restarted) re-anchors AMCL.
     - mapping: ``maps_dir`` is where ``localization/save_map`` writes (empty: ``<state_dir>/maps``); a scan is
       processed only after ``mapping_min_travel_m`` / ``mapping_min_turn_rad`` of odometry; the growing map is
@@ -49,6 +51,7 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
     particles_publish_hz: float = 2.0
     odom_history_s: float = 2.0
     scan_odom_tolerance_s: float = 0.1
+    scan_queue_size: int = 10
     odom_jump_m: float = 1.0
     maps_dir: str = ""
     mapping_min_travel_m: float = 0.1
@@ -69,6 +72,8 @@ class LocalizationConfig(AmclParams, kw_only=True, forbid_unknown_fields=True):
         for name in ("save_pose_rate", "particles_publish_hz", "scan_odom_tolerance_s"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0")
+        if self.scan_queue_size < 0:
+            raise ValueError("scan_queue_size must be >= 0")
         if not self.odom_history_s > 0:
             raise ValueError("odom_history_s must be > 0")
         for name in ("mapping_odom_sigma_xy_m", "mapping_odom_sigma_theta_rad"):

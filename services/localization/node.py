@@ -26,6 +26,7 @@ from proto.messages import (
     LaserScan,
     LocalizationState,
     LocalizationUpdate,
+    Message,
     Odometry,
     Pose2D,
     PoseArray,
@@ -35,6 +36,7 @@ from proto.messages import (
 )
 from services.common.node import Node, TopicPublisher
 from services.common.service import ServiceContext
+from services.common.service_events import ServiceEventLog
 from services.localization.amcl import Amcl, select_beams
 from services.localization.config import LocalizationConfig
 from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
@@ -46,6 +48,7 @@ from services.localization.pose_store import (
     should_save,
     write_pose,
 )
+from services.localization.scan_queue import ScanQueue
 from services.localization.settle import AtRestSettler
 
 Pose = tuple[float, float, float]
@@ -62,17 +65,22 @@ def _finite(*values: float) -> bool:
 @dataclass
 class Outputs:
     """The service's publishers: ``map`` (latched), ``pose`` (latched like amcl_pose), ``tf/map_odom`` (latched),
-    ``particles``."""
+    ``particles``, the service events of the queries that change the filter."""
 
     map: TopicPublisher
     pose: TopicPublisher
     tf: TopicPublisher
     particles: TopicPublisher
+    #: query -> its ``<query>/_service_event`` publisher (services/common/service_events.py), never dropped
+    events: dict[str, TopicPublisher]
 
     @classmethod
     def declare(cls, node: Node) -> Outputs:
+        events = {"localization/nomotion": node.publisher("localization/nomotion/_service_event", block=True),
+                  "localization/initial_pose": node.publisher("localization/initial_pose/_service_event", block=True),
+                  "localization/global": node.publisher("localization/global/_service_event", block=True)}
         return cls(node.publisher("map", latched=True), node.publisher("pose", latched=True),
-                   node.publisher("tf/map_odom", latched=True), node.publisher("particles"))
+                   node.publisher("tf/map_odom", latched=True), node.publisher("particles"), events)
 
 
 class LocalizationNode:
@@ -89,7 +97,7 @@ class LocalizationNode:
         self.amcl: Amcl | None = None
         self.map_problem = ""
         self.odom = OdomHistory(cfg.odom_history_s)
-        self.pending_scan: LaserScan | None = None
+        self.scans: ScanQueue[LaserScan] = ScanQueue(cfg.scan_queue_size)  # waiting for the odom of their stamp
         self.last_particles_at = -math.inf
         self.stats: dict[str, Any] = collections.Counter()  # counts, and the last verdict and reason
         self.initialised = False
@@ -100,6 +108,10 @@ class LocalizationNode:
         outputs = outputs or Outputs.declare(self.node)
         self.pub_map, self.pub_pose, self.pub_tf, self.pub_particles = (
             outputs.map, outputs.pose, outputs.tf, outputs.particles)
+        self.pub_events = outputs.events
+        self.events = {query: ServiceEventLog() for query in outputs.events}
+        #: requests that took effect, waiting for the first scan the filter runs on (their response_sent event)
+        self._awaiting_scan: list[tuple[str, int, Reply]] = []
         self._load_map()
         self._initialise()
         self.node.extra_stats["localization"] = self.stats
@@ -197,29 +209,25 @@ class LocalizationNode:
             self.log.warning("odometry jumped from (%.2f, %.2f) to (%.2f, %.2f); re-anchoring AMCL on it",
                              last[0], last[1], p.x, p.y)
             self.odom = OdomHistory(self.cfg.odom_history_s)
-            self.pending_scan = None
+            self.scans.clear()
             if self.amcl is not None:
                 self.amcl.reanchor_odometry()
         self.odom.add(msg.stamp, (p.x, p.y, p.theta))
-        if self.pending_scan is not None and msg.stamp >= self.pending_scan.stamp:
-            scan, self.pending_scan = self.pending_scan, None
+        for scan in self.scans.ready(self.odom.latest_stamp):
             self._process(scan)
 
     def on_scan(self, msg: LaserScan) -> None:
         self.stats["scans"] += 1
         if self.amcl is None or not self.initialised:
             return
-        if self.pending_scan is not None:  # the odom never passed it: extrapolate within tolerance, or drop
-            scan, self.pending_scan = self.pending_scan, None
-            self._process(scan)
-        latest = self.odom.latest_stamp
-        if latest is None:
+        if self.odom.latest_stamp is None:
             self.stats["scans_without_odom"] += 1
             return
-        if msg.stamp > latest:
-            self.pending_scan = msg
-            return
-        self._process(msg)
+        for scan in self.scans.push(msg):  # the odom stalled: place within the tolerance, or drop
+            self.stats["scans_past_queue"] += 1
+            self._process(scan)
+        for scan in self.scans.ready(self.odom.latest_stamp):
+            self._process(scan)
 
     def _process(self, scan: LaserScan) -> None:
         assert self.amcl is not None
@@ -255,6 +263,7 @@ class LocalizationNode:
                                  self.amcl.params, max_beams=ranges.size)
         asked = self.amcl.refine_pending
         before = self.amcl.state
+        self._served_on_scan(scan.stamp)
         updated = self.settler.process(self.amcl, odom_pose, beams, mount, scan.stamp, dense)
         changed = self.amcl.state != before
         if changed:
@@ -349,6 +358,14 @@ class LocalizationNode:
         return None
 
     def on_initial_pose(self, req: InitialPoseRequest) -> Reply:
+        """Set the initial pose; one that took effect is published as service events (a replay issues it again)."""
+        reply = self._set_initial_pose(req)
+        if reply.ok:
+            self._awaiting_scan.append(("localization/initial_pose",
+                                        self._took_effect("localization/initial_pose", req), reply))
+        return reply
+
+    def _set_initial_pose(self, req: InitialPoseRequest) -> Reply:
         if (problem := self._no_map()) is not None:
             return problem
         assert self.amcl is not None and self.grid is not None
@@ -382,9 +399,11 @@ class LocalizationNode:
         self.amcl.global_localization()
         self._localizing_from(None)
         self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
-        return Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
+        reply = Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
+        self._awaiting_scan.append(("localization/global", self._took_effect("localization/global", _req), reply))
+        return reply
 
-    async def on_nomotion(self, _req: Empty) -> LocalizationUpdate:
+    async def on_nomotion(self, req: Empty) -> LocalizationUpdate:
         """Update the filter without motion on the next scan, refine at rest, and answer with the result once it is
         published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is withdrawn and the answer says so)."""
         if (problem := self._no_map()) is not None:
@@ -394,6 +413,30 @@ class LocalizationNode:
             return LocalizationUpdate(ok=False,
                                       message="not localized yet: set an initial pose or start global localization")
         self.amcl.request_nomotion_update(refine=True)
+        # recorded, so that a replay of the recording issues the request again (service_events.py)
+        sequence = self._took_effect("localization/nomotion", req)
+        answer = await self._await_update()
+        served_on = ("scan", answer.pose.stamp) if answer.ok and answer.pose is not None else ("", 0.0)
+        self.pub_events["localization/nomotion"].put(ServiceEventLog.response_sent(
+            self.ctx.clock.now(), sequence, answer, *served_on))
+        return answer
+
+    def _took_effect(self, query: str, req: Message) -> int:
+        """Publish the ``request_received`` event of a request that has just changed the filter; its sequence."""
+        event = self.events[query].request_received(self.ctx.clock.now(), req)
+        self.pub_events[query].put(event)
+        return event.sequence
+
+    def _served_on_scan(self, stamp: float) -> None:
+        """The filter runs on the scan stamped ``stamp``: the requests that took effect before it were served on it."""
+        for query, sequence, reply in self._awaiting_scan:
+            self.pub_events[query].put(ServiceEventLog.response_sent(self.ctx.clock.now(), sequence, reply, "scan",
+                                                                     stamp))
+        self._awaiting_scan.clear()
+
+    async def _await_update(self) -> LocalizationUpdate:
+        """The answer of the update just requested, or that none came within ``NOMOTION_ANSWER_TIMEOUT_S``."""
+        assert self.amcl is not None
         fut: asyncio.Future[LocalizationUpdate] = asyncio.get_running_loop().create_future()
         self._update_waiters.append(fut)
         try:
