@@ -64,6 +64,10 @@ def test_schedule_issues_a_request_just_before_the_message_it_was_served_on() ->
     assert schedule.due(1_600, "scan", 1.96) == []
     assert schedule.due(1_700, "scan", 2.0) == [served]
     assert schedule.due(1_800, "scan", 2.04) == []
+    # the live stamp had bits that the bag's nanoseconds do not keep: the same scan all the same
+    near = RecordedRequest("localization/nomotion", 3, b"", log_ns=2_000, input_topic="scan",
+                           input_stamp_s=25.150000000000002)
+    assert RequestSchedule([near], None).due(2_100, "scan", 25.15) == [near]
     # no input recorded: at its log time, whatever the topic
     assert schedule.due(4_999, "odom", None) == []
     assert schedule.due(5_000, "odom", None) == [timed]

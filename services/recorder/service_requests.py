@@ -5,8 +5,9 @@ A service that records its requests publishes ``<query>/_service_event`` (``serv
 them into ``RecordedRequest`` s; ``RequestSchedule.due`` says which to issue before each message a replay publishes:
 
 - a request served on an input (``localization/nomotion``: the update ran on the scan stamped ``input_stamp``) just
-  before the first played message of ``input_topic`` stamped at or after ``input_stamp``, so that it takes effect on
-  the same message as it did live (the replay waits for the service's ``request_received`` before going on);
+  before the first played message of ``input_topic`` stamped at or after ``input_stamp`` (compared in nanoseconds, as
+  a bag holds stamps), so that it takes effect on the same message as it did live (the replay waits for the
+  service's ``request_received`` before going on);
 - any other request (no response recorded, or its input topic is not played) before the first message logged at or
   after its ``request_received`` event, as rosbag2 does.
 """
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 
 from proto.messages import ServiceEvent
 from services.common.service_events import query_of
+from services.recorder.rosconv import stamp_to_ns
 
 
 @dataclass
@@ -72,8 +74,9 @@ class RequestSchedule:
             out.append(self.timed.pop(0))
         if stamp_s is not None:
             keep: list[RecordedRequest] = []
+            stamp_ns = stamp_to_ns(stamp_s)  # a bag holds stamps to the nanosecond
             for r in self.anchored:
-                (out if r.input_topic == topic and r.input_stamp_s <= stamp_s else keep).append(r)
+                (out if r.input_topic == topic and stamp_to_ns(r.input_stamp_s) <= stamp_ns else keep).append(r)
             self.anchored = keep
         return sorted(out, key=lambda r: r.log_ns)
 
