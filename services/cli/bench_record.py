@@ -1,8 +1,9 @@
 """Recording and replay on the corridor Table 3 run: the harness of the record/replay tests and their bench rows.
 
 ``record_corridor`` starts the simulated stack (AMCL seeded), runs ``zagv record`` as its own process while the
-scenario runner drives the Table 3 goals once, and keeps every scan, odom and map->odom payload that was published
-(so a test can compare the bag with them). ``replay_into_localization`` starts localization alone (no sim, no
+scenario runner sets the initial pose (inside the bag, so that a replay re-initialises the filter on the same scan)
+and drives the Table 3 goals once, and keeps every scan, odom and map->odom payload that was published (so a test
+can compare the bag with them). ``replay_into_localization`` starts localization alone (no sim, no
 drive, on the replayed clock) and plays the bag's ``scan`` and ``odom`` into it with ``zagv replay``, collecting the
 poses it publishes.
 

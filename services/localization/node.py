@@ -112,6 +112,8 @@ class LocalizationNode:
         self.events = {query: ServiceEventLog() for query in outputs.events}
         #: requests that took effect, waiting for the first scan the filter runs on (their response_sent event)
         self._awaiting_scan: list[tuple[str, int, Reply]] = []
+        #: a localization/nomotion request waits until this scan (queued when it came) has been through the filter
+        self._update_after: LaserScan | None = None
         self._load_map()
         self._initialise()
         self.node.extra_stats["localization"] = self.stats
@@ -210,6 +212,7 @@ class LocalizationNode:
                              last[0], last[1], p.x, p.y)
             self.odom = OdomHistory(self.cfg.odom_history_s)
             self.scans.clear()
+            self._request_update_now()
             if self.amcl is not None:
                 self.amcl.reanchor_odometry()
         self.odom.add(msg.stamp, (p.x, p.y, p.theta))
@@ -230,6 +233,17 @@ class LocalizationNode:
             self._process(scan)
 
     def _process(self, scan: LaserScan) -> None:
+        self._run_filter(scan)
+        if scan is self._update_after:  # the last scan taken before a localization/nomotion request
+            self._request_update_now()
+
+    def _request_update_now(self) -> None:
+        """A deferred ``localization/nomotion`` request takes effect: on the next scan the filter runs on."""
+        if self._update_after is not None and self.amcl is not None:
+            self._update_after = None
+            self.amcl.request_nomotion_update(refine=True)
+
+    def _run_filter(self, scan: LaserScan) -> None:
         assert self.amcl is not None
         odom_pose = self.odom.at(scan.stamp, self.cfg.scan_odom_tolerance_s)
         if odom_pose is None:
@@ -412,7 +426,10 @@ class LocalizationNode:
         if not self.initialised:
             return LocalizationUpdate(ok=False,
                                       message="not localized yet: set an initial pose or start global localization")
-        self.amcl.request_nomotion_update(refine=True)
+        if len(self.scans):  # the waiting scans were taken before the request: it runs on one received after it
+            self._update_after = self.scans.waiting[-1]
+        else:
+            self.amcl.request_nomotion_update(refine=True)
         # recorded, so that a replay of the recording issues the request again (service_events.py)
         sequence = self._took_effect("localization/nomotion", req)
         answer = await self._await_update()
@@ -447,6 +464,7 @@ class LocalizationNode:
             if fut in self._update_waiters:
                 self._update_waiters.remove(fut)
             if not self._update_waiters and self.amcl is not None:
+                self._update_after = None
                 self.amcl.withdraw_nomotion_request()
             return LocalizationUpdate(ok=False, message=f"no scan reached the filter within "
                                                         f"{NOMOTION_ANSWER_TIMEOUT_S:g} s: the update is withdrawn")
