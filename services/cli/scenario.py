@@ -210,6 +210,17 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
         result["loc_error_rms_m"] = round(float(np.sqrt(np.mean(le ** 2))), 4)
 
 
+#: wall seconds a goal request is re-sent for while nav's reply does not arrive
+GOAL_REQUEST_DEADLINE_S = 60.0
+
+
+def unsent_goal_result(goal: Goal, why: str) -> dict:
+    """The result of a goal whose request nav never answered."""
+    return {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
+            "time_s": 0.0, "claimed": "not sent", "nav_error": why, "recoveries": 0, "collisions": 0,
+            "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
+
+
 async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, timeout_s: float,
                    legs: list[Leg] | None, xy_tol_m: float = 0.05, yaw_tol_rad: float = 0.05,
                    map_error_allowance_m: float = 0.0) -> dict:
@@ -219,10 +230,10 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     placed: list[str] = []
     req = m.GoalRequest(pose=m.Pose2D(x=goal.pose[0], y=goal.pose[1], theta=goal.pose[2]),
                         id=f"r{run}g{goal.id}")
-    deadline = time.monotonic() + 30.0
-    while True:  # a reply lost under load: ask again (the same id, so nav takes it as the same goal)
+    deadline = time.monotonic() + GOAL_REQUEST_DEADLINE_S
+    while True:  # a reply lost or late under load: ask again (the same id and pose: nav keeps the goal running)
         try:
-            reply: m.GoalReply = await c.query("nav/goal", req)
+            reply: m.GoalReply = await c.query("nav/goal", req, timeout_s=10.0)
             break
         except QueryError:
             if time.monotonic() > deadline:
@@ -337,9 +348,13 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                 break
             goals = []
             for k, goal in enumerate(sc.goals, 1):
-                res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None,
-                                     spec.goal_xy_tolerance_m, spec.goal_yaw_tolerance_rad,
-                                     sc.mapping.map_error_allowance_m if sc.mapping is not None else 0.0)
+                try:
+                    res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None,
+                                         spec.goal_xy_tolerance_m, spec.goal_yaw_tolerance_rad,
+                                         sc.mapping.map_error_allowance_m if sc.mapping is not None else 0.0)
+                except QueryError as exc:  # this goal never reached nav: it counts as not reached, the run goes on
+                    c.leg = None
+                    res = unsent_goal_result(goal, str(exc))
                 goals.append(res)
                 err = ", ".join(f"{v:+.3f}" if v is not None else "-" for v in res["error"])
                 loc = ", ".join(f"{v:+.3f}" for v in c.localization_errors[-1]) if c.localization_errors else "-"
