@@ -133,13 +133,20 @@ def format_table(summary: list[dict]) -> str:
 # --------------------------------------------------------------------------- running
 
 
+#: wall seconds a goal request is re-sent for while nav's reply does not arrive
+GOAL_REQUEST_DEADLINE_S = 60.0
+#: wall seconds one ask of a scenario request waits for its answer
+ATTEMPT_TIMEOUT_S = 20.0
+
+
 async def query_until(c: Client, name: str, req: m.Message, deadline_s: float) -> Any:
     """``c.query`` asked again while nothing answers (a service busy relocalizing on a loaded machine), until
-    ``deadline_s`` of wall time; the last QueryError then."""
+    ``deadline_s`` of wall time; the last QueryError then. Each ask waits up to ``ATTEMPT_TIMEOUT_S``: on a
+    loaded machine an answer can take seconds, and one that comes late is still the answer."""
     deadline = time.monotonic() + deadline_s
     while True:
         try:
-            return await c.query(name, req)
+            return await c.query(name, req, timeout_s=max(1.0, min(ATTEMPT_TIMEOUT_S, deadline - time.monotonic())))
         except QueryError:
             if time.monotonic() > deadline:
                 raise
@@ -210,8 +217,6 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
         result["loc_error_rms_m"] = round(float(np.sqrt(np.mean(le ** 2))), 4)
 
 
-#: wall seconds a goal request is re-sent for while nav's reply does not arrive
-GOAL_REQUEST_DEADLINE_S = 60.0
 
 
 def unsent_goal_result(goal: Goal, why: str) -> dict:
@@ -233,7 +238,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     deadline = time.monotonic() + GOAL_REQUEST_DEADLINE_S
     while True:  # a reply lost or late under load: ask again (the same id and pose: nav keeps the goal running)
         try:
-            reply: m.GoalReply = await c.query("nav/goal", req, timeout_s=10.0)
+            reply: m.GoalReply = await c.query("nav/goal", req, timeout_s=ATTEMPT_TIMEOUT_S)
             break
         except QueryError:
             if time.monotonic() > deadline:
@@ -242,7 +247,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     while not reply.accepted and ("no robot pose" in reply.reason or "no map" in reply.reason) \
             and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # nav has not yet seen odometry, map->odom or the map
-        reply = await c.query("nav/goal", req)
+        reply = await c.query("nav/goal", req, timeout_s=ATTEMPT_TIMEOUT_S)
     t0 = c.sim_time
     collisions_before = c.collisions
     result: dict[str, Any] = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
