@@ -159,27 +159,6 @@ def write_units(units: dict[str, str], dest: Path) -> list[Path]:
     return written
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("install-units", help="render the systemd units (router, services, zagv.target)",
-                       description="Render deploy/systemd/*.in for this robot and write the units to --dest.")
-    p.add_argument("--venv", required=True, help="the virtualenv zagv is installed in (absolute path)")
-    p.add_argument("--user", required=True, help="the dedicated system user the services run as")
-    p.add_argument("--dest", default=DEFAULT_DEST, help="where to write the units (default %(default)s)")
-    p.add_argument("--site", action="store_true",
-                   help="the site server's units (site router, fleet view, zagv-site.target; deploy/site.md)")
-    p.add_argument("--config", help=f"robot TOML file (default {DEFAULT_CONFIG}; with --site {DEFAULT_SITE_CONFIG})")
-    p.add_argument("--can-interface", default="can0", help="CAN interface of the drive (default %(default)s)")
-    p.add_argument("--router", choices=["zenohd", "zagv"],
-                   help="router program (default: zenohd when on PATH, else zagv router)")
-    p.add_argument("--zenoh-config", help=f"router json5 config (default {DEFAULT_ZENOH_CONFIG}; with --site "
-                                          f"{DEFAULT_SITE_ZENOH_CONFIG}; see deploy/zenoh/)")
-    p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
-    p.add_argument("--drive-rt-priority", type=int, default=DEFAULT_DRIVE_RT_PRIORITY,
-                   help="SCHED_FIFO priority of the drive (default %(default)s)")
-    p.add_argument("--templates", help="folder of the *.in templates (default: deploy/systemd of this checkout)")
-    p.set_defaults(func=run)
-
-
 def run(args: argparse.Namespace) -> int:
     zenohd = shutil.which("zenohd") or ""
     router = args.router or ("zenohd" if zenohd else "zagv")

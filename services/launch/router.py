@@ -15,17 +15,6 @@ from services.common.settings import ZenohSettings
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("router", help="run a Zenoh router (loopback by default; multicast scouting off)")
-    p.add_argument("--listen", action="append",
-                   help=f"endpoint to listen on (default: the config file's listen/endpoints, else {DEFAULT_LISTEN})")
-    p.add_argument("--config", help="zenoh json5 config file applied first (TLS, access control)")
-    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="another router to link to, e.g. a robot's router to its site router "
-                        "(default: the config file's connect/endpoints); retried while it is away")
-    p.set_defaults(func=run)
-
-
 def config_listen_endpoints(path: str | None) -> list[str]:
     """The ``listen/endpoints`` list of a zenoh json5 file ([] when absent or when it is zenoh's per-mode default)."""
     if not path:

@@ -47,87 +47,23 @@ when the ground-truth error is within the tolerance plus the allowance and the e
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
-import json
 import math
-import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from proto import codec
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario_client import Client, Leg, localization_errors_m, wait_until
-from services.cli.scenario_model import Goal, Scenario, ScenarioError, load_scenario
-from services.common.query import QueryError, query
+from services.common.query import QueryError
 from services.common.se2 import wrap_angle
+from services.scenario.client import Client, Leg, localization_errors_m, wait_until
+from services.scenario.model import Goal, Scenario
 
 TERMINAL = ("succeeded", "failed", "canceled")
-
-
-# --------------------------------------------------------------------------- report
-
-
-def summarize(runs: list[dict]) -> list[dict]:
-    """Per goal (in order): target, mean error over reached runs, reached count, mean time."""
-    rows: dict[str, dict] = {}
-    for run in runs:
-        for g in run["goals"]:
-            r = rows.setdefault(g["id"], {"id": g["id"], "target": g["target"], "errors": [], "times": [],
-                                          "reached": 0, "total": 0})
-            r["total"] += 1
-            if g["reached"]:
-                r["reached"] += 1
-                r["errors"].append(g["error"])
-                r["times"].append(g["time_s"])
-    out = []
-    for r in rows.values():
-        e = np.asarray(r["errors"], dtype=float).reshape(-1, 3)
-        out.append({"id": r["id"], "target": r["target"], "reached": r["reached"], "total": r["total"],
-                    "mean_error": e.mean(axis=0).tolist() if len(e) else [math.nan] * 3,
-                    "mean_abs_error": np.abs(e).mean(axis=0).tolist() if len(e) else [math.nan] * 3,
-                    "mean_time_s": float(np.mean(r["times"])) if r["times"] else math.nan})
-    return out
-
-
-def leg_totals(runs: list[dict]) -> dict:
-    """Totals over every goal of ``runs``: goals, reached (ground truth), claimed succeeded, claimed succeeded
-    outside the tolerance, collisions, recoveries, localization error max and RMS (m, over all samples, RMS
-    weighted by leg), time (s) and ground-truth distance driven (m), and time per metre (s/m) of the reached legs."""
-    goals = [g for r in runs for g in r["goals"]]
-    reached = [g for g in goals if g["reached"]]
-    loc_max = [g.get("loc_error_max_m") for g in goals if g.get("loc_error_max_m") is not None]
-    loc_rms = [g.get("loc_error_rms_m") for g in goals if g.get("loc_error_rms_m") is not None]
-    t = sum(g["time_s"] for g in reached)
-    d = sum(g.get("driven_m", 0.0) for g in reached)
-    return {"goals": len(goals), "reached": len(reached),
-            "claimed": sum(g.get("claimed", "succeeded" if g["reached"] else "") == "succeeded" for g in goals),
-            "claimed_outside": sum(g.get("claimed") == "succeeded" and not g["reached"] for g in goals),
-            "collisions": sum(g.get("collisions", 0) for g in goals),
-            "recoveries": sum(g.get("recoveries", 0) for g in goals),
-            "loc_error_max_m": max(loc_max) if loc_max else math.nan,
-            "loc_error_rms_m": float(np.sqrt(np.mean(np.square(loc_rms)))) if loc_rms else math.nan,
-            "time_s": t, "driven_m": d, "time_per_metre_s": t / d if d > 0 else math.nan}
-
-
-def format_table(summary: list[dict]) -> str:
-    w = max([len(str(r["id"])) for r in summary] + [4])
-    head = f"{'goal':>{w}}  {'target (x, y, θ)':<24}  {'mean error x / y / θ':<26}  {'|error| x / y / θ':<26}  " \
-           f"{'reached':>8}  {'time s':>7}"
-    lines = [head, "-" * len(head)]
-    for r in summary:
-        t = "({:.2f}, {:.2f}, {:.2f})".format(*r["target"])
-        e = "{:+.3f} / {:+.3f} / {:+.3f}".format(*r["mean_error"])
-        a = "{:.3f} / {:.3f} / {:.3f}".format(*r["mean_abs_error"])
-        lines.append(f"{r['id']:>{w}}  {t:<24}  {e:<26}  {a:<26}  {r['reached']:>3}/{r['total']:<4}  "
-                     f"{r['mean_time_s']:>7.1f}")
-    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- running
@@ -320,8 +256,8 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                 raise RuntimeError("no sim/ground_truth within 240 s")
             await asyncio.sleep(0.05)
         if sc.mapping is not None:
-            from services.cli.scenario_mapping import run_mapping
             from services.common.robot import RobotSpec
+            from services.scenario.mapping import run_mapping
 
             if truth_yaml is None:
                 raise RuntimeError("the mapping phase needs the ground-truth map")
@@ -353,174 +289,3 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
             {"id": g.id, "target": list(g.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
              "time_s": 0.0} for g in sc.goals]})
     return runs, legs, c.collisions, c.detours, mapping
-
-
-def draw_plots(legs: list[Leg], grid: m.OccupancyGrid | None, out_dir: Path) -> list[Path]:
-    """Per leg: map + planned path + driven path as heading arrows; vx, vy, wz against time (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    files = []
-    for k, leg in enumerate(legs, 1):
-        tr = np.asarray(leg.trace, dtype=float).reshape(-1, 7)
-        fig, ax = plt.subplots(figsize=(9, 6))
-        if grid is not None and grid.width:
-            data = codec.array(grid, "data").reshape(grid.height, grid.width)
-            img = np.where(data < 0, 0.6, 1.0 - np.clip(data, 0, 100) / 100.0)
-            ext = (grid.origin.x, grid.origin.x + grid.width * grid.resolution, grid.origin.y,
-                   grid.origin.y + grid.height * grid.resolution)
-            ax.imshow(img, cmap="gray", origin="lower", extent=ext, vmin=0, vmax=1)
-        for r in leg.obstacles:
-            ax.add_patch(plt.Rectangle((r[0], r[1]), r[2] - r[0], r[3] - r[1], color="orange", alpha=0.8,
-                                       label="dynamic obstacle"))
-        if leg.plan is not None and len(leg.plan):
-            ax.plot(leg.plan[:, 0], leg.plan[:, 1], "b-", lw=1.5, label="global plan")
-        if leg.final_plan is not None:
-            ax.plot(leg.final_plan[:, 0], leg.final_plan[:, 1], "c--", lw=1.2, label="replanned around the obstacle")
-        if len(tr):
-            step = max(1, len(tr) // 60)
-            s = tr[::step]
-            ax.quiver(s[:, 1], s[:, 2], np.cos(s[:, 3]), np.sin(s[:, 3]), color="r", scale=40, width=0.003,
-                      label="driven (heading)")
-            pad = 2.0
-            xs = np.concatenate([tr[:, 1], [leg.goal.pose[0]]])
-            ys = np.concatenate([tr[:, 2], [leg.goal.pose[1]]])
-            ax.set_xlim(xs.min() - pad, xs.max() + pad)
-            ax.set_ylim(ys.min() - pad, ys.max() + pad)
-        ax.plot(*leg.goal.pose[:2], "g*", ms=12, label=f"goal {leg.goal.id}")
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.legend(loc="best", fontsize=8)
-        ax.set_title(f"run {leg.run}, leg {k}: to goal {leg.goal.id}")
-        f = out_dir / f"leg{k:02d}_goal{leg.goal.id}_path.png"
-        fig.savefig(f, dpi=110, bbox_inches="tight")
-        plt.close(fig)
-        files.append(f)
-        if len(tr):
-            fig, ax = plt.subplots(figsize=(9, 4))
-            t = tr[:, 0] - tr[0, 0]
-            ax.plot(t, tr[:, 4], label="vx (m/s)")
-            ax.plot(t, tr[:, 5], label="vy (m/s)")
-            ax.plot(t, tr[:, 6], label="wz (rad/s)")
-            ax.set_xlabel("time (s)")
-            ax.grid(True, alpha=0.3)
-            ax.legend(loc="best", fontsize=8)
-            ax.set_title(f"run {leg.run}, leg {k}: velocities to goal {leg.goal.id}")
-            f = out_dir / f"leg{k:02d}_goal{leg.goal.id}_velocity.png"
-            fig.savefig(f, dpi=110, bbox_inches="tight")
-            plt.close(fig)
-            files.append(f)
-    return files
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("scenario", help="run navigation scenarios in the simulator")
-    ssub = p.add_subparsers(dest="scenario_command", required=True, metavar="ACTION")
-    rp = ssub.add_parser("run", help="run a scenario file and print the error table")
-    rp.add_argument("file", help="scenario TOML")
-    rp.add_argument("--json", help="write the per-run results to this file")
-    rp.add_argument("--maps-dir", help="folder the scenario's map path is relative to when it is not next to the "
-                    "file (default: $ZAGV_MAPS_DIR)")
-    rp.add_argument("--plots", help="write per-leg path and velocity plots (PNG) into this folder")
-    rp.add_argument("--goal-timeout", type=float, default=900.0, help="sim seconds per goal (default %(default)s)")
-    rp.add_argument("--repeats", type=int, help="override the file's repeats")
-    rp.add_argument("--speed", type=float, help="override the file's sim speed factor")
-    rp.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
-                    help="config override passed to the stack (zagv up --set)")
-    rp.add_argument("--run-dir", help="folder for the stack's run state and log (default: temporary)")
-    rp.add_argument("--start-seed", type=int, help="start the stack's services in a random order (zagv up)")
-    rp.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
-                    help="with --start-seed: random 0..S s delay before each service (zagv up)")
-    rp.add_argument("--mqtt-broker", metavar="HOST:PORT",
-                    help="[vda5050] scenarios: the MQTT broker of the robots and the master (default: embedded)")
-    rp.set_defaults(func=run)
-    from services.cli.scenario_generate import add_parser as add_generate
-
-    add_generate(ssub)
-    from services.cli.scenario_suite import add_parser as add_suite
-
-    add_suite(ssub)
-
-
-def run(args: argparse.Namespace) -> int:
-    from services.cli.stack_process import Stack
-
-    try:
-        sc = load_scenario(args.file, args.maps_dir)
-    except ScenarioError as exc:
-        print(f"zagv scenario: {exc}", file=sys.stderr)
-        return 2
-    if args.repeats:
-        sc.repeats = args.repeats
-    if args.speed:
-        sc.speed = args.speed
-    if sc.vda5050 is not None:
-        from services.cli.scenario_vda5050 import run_vda5050_fleet
-
-        return run_vda5050_fleet(sc, args)
-    if sc.robots:
-        from services.cli.scenario_fleet import run_fleet
-
-        return run_fleet(sc, args)
-    run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-scenario-"))
-    run_dir.mkdir(parents=True, exist_ok=True)
-    extra = ["--headless"]
-    if sc.mapping is not None:  # SLAM's map frame starts where the simulated robot starts: at the scenario's start
-        x, y, th = sc.start
-        extra += ["--mapping", "--set", f"sim.start_pose=[{x!r}, {y!r}, {th!r}]",
-                  "--set", f"localization.initial_pose_x={x!r}", "--set", f"localization.initial_pose_y={y!r}",
-                  "--set", f"localization.initial_pose_yaw={th!r}"]
-    extra += [a for s in args.set for a in ("--set", s)]
-    if args.start_seed is not None:
-        extra += ["--start-seed", str(args.start_seed), "--start-delay-max", str(args.start_delay_max)]
-    stack = Stack(run_dir, None, world=sc.world or "corridor", map_yaml=sc.map_yaml, speed=sc.speed,
-                  extra_args=extra)
-    print(f"zagv scenario: starting the simulated stack (log {run_dir / 'stack.log'})", flush=True)
-    try:
-        stack.start(ready_timeout_s=120.0)
-        session = stack.session()
-
-        truth_yaml = sc.map_yaml or str(run_dir / "world.yaml")  # zagv up renders the world there
-
-        async def main() -> tuple[list[dict], list[Leg], int, list[bool], Any, m.OccupancyGrid | None]:
-            runs, legs, collisions, detours, mapping = await run_scenario(
-                sc, session, stack.keys, goal_timeout_s=args.goal_timeout, plots=bool(args.plots),
-                progress=lambda s: print(s, flush=True), truth_yaml=truth_yaml)
-            grid = None
-            if args.plots:
-                with contextlib.suppress(QueryError):
-                    grid = await query(session, stack.keys, "map", m.Empty(), timeout_s=5.0)
-            return runs, legs, collisions, detours, mapping, grid
-
-        runs, legs, collisions, detours, mapping, grid = asyncio.run(main())
-    except (AssertionError, RuntimeError, QueryError) as exc:
-        print(f"zagv scenario: {exc}", file=sys.stderr)
-        return 1
-    finally:
-        stack.stop()
-    summary = summarize(runs)
-    if mapping is not None:
-        print(mapping.line())
-    print(format_table(summary))
-    total = sum(r["total"] for r in summary)
-    reached = sum(r["reached"] for r in summary)
-    tot = leg_totals(runs)
-    print(f"reached {reached}/{total} goals within tolerance (ground truth); nav claimed {tot['claimed']}, "
-          f"{tot['claimed_outside']} of them outside the tolerance; collisions: {collisions}; recoveries: "
-          f"{tot['recoveries']}; localization error max {tot['loc_error_max_m']:.3f} m, RMS "
-          f"{tot['loc_error_rms_m']:.3f} m; {tot['time_per_metre_s']:.1f} s per metre driven")
-    if detours:
-        print(f"replanned around the dynamic obstacle in {sum(detours)}/{len(detours)} legs")
-    if args.json:
-        result: dict[str, Any] = {"runs": runs}
-        if mapping is not None:
-            result["mapping"] = mapping.to_json()
-        Path(args.json).write_text(json.dumps(result, indent=2))
-    if args.plots:
-        files = draw_plots(legs, grid, Path(args.plots))
-        print(f"plots: {len(files)} files in {args.plots}")
-    return 0 if reached == total and collisions == 0 else 1
