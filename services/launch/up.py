@@ -67,7 +67,7 @@ class StackPlan:
     mqtt_port: int = 1883
     mqtt_embedded: bool = True
 
-    #: several robots in one world (services/cli/fleet.py): ``robot_count`` (--robots), explicit ``robot_slots``
+    #: several robots in one world (services/launch/fleet.py): ``robot_count`` (--robots), explicit ``robot_slots``
     #: (--robot); ``fleet`` is the resolved list (ids and start poses), empty for the single robot of ``robot_id``
     robot_count: int = 1
     robot_slots: list[RobotSlot] = field(default_factory=list)

@@ -139,7 +139,7 @@ def generate_goals(space: FreeSpace, n_goals: int, seed: int, start: tuple[float
 
 def scenario_toml(name: str, source: str, start: tuple[float, float, float], goals: list[tuple[float, float, float]],
                   speed: float, description: str) -> str:
-    """The scenario file (services/cli/scenario.py format); ``source`` is a ``map = ...`` or ``world = ...`` line."""
+    """The scenario file (services/scenario/runner.py format); ``source`` is a ``map = ...`` or ``world = ...`` line."""
     lines = [f"# {description}", f'name = "{name}"', source, f"start = [{start[0]}, {start[1]}, {start[2]}]",
              "repeats = 1", f"speed = {speed:g}", ""]
     for k, g in enumerate(goals, 1):

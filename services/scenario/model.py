@@ -1,5 +1,5 @@
 """A scenario file (TOML) as data: the world or map, start, repeats, speed, goals, dynamic obstacles and the optional
-mapping phase; ``load_scenario`` checks it and names what is wrong (services/cli/scenario.py documents the format)."""
+mapping phase; ``load_scenario`` checks it and names what is wrong (the format: services/scenario/runner.py)."""
 
 from __future__ import annotations
 

@@ -32,7 +32,7 @@ nav reports ``succeeded`` outside it is printed and counted. JSON: ``{"runs": [{
 "loc_error_max_m", "loc_error_rms_m"}]}]}`` (localization error: |estimate - truth| at every odometry stamp of the
 leg, the truth interpolated to that stamp).
 
-With ``[mapping]`` (the paper's mapping workflow, services/cli/scenario_mapping.py) the stack starts in mapping mode
+With ``[mapping]`` (the paper's mapping workflow, services/scenario/mapping.py) the stack starts in mapping mode
 (``zagv up --mapping``, SLAM's map frame and the simulated robot both at ``start``); the simulated operator jogs the
 route by ``cmd_vel`` while watching ``sim/ground_truth``, then the map is saved (``localization/save_map``), scored
 against the world's ground-truth map (occupied-cell F1), localization switches to AMCL on it (``localization/mode``)

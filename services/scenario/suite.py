@@ -1,9 +1,9 @@
 """``zagv scenario suite [SUITE.toml] --maps-dir DIR``: the robustness benchmark over many maps.
 
 For every map of the suite file and every seed, ``zagv scenario generate`` draws a scenario of reachable goals
-(services/cli/scenario_generate.py); one simulated stack per map then drives the goals of each seed in turn (the
+(services/scenario/generate.py); one simulated stack per map then drives the goals of each seed in turn (the
 robot teleported to that seed's start). Every goal is judged by the ground truth against the goal tolerance
-(services/cli/scenario.py). The table has one row per map: goals, reached, what nav claimed and how often it
+(services/scenario/runner.py). The table has one row per map: goals, reached, what nav claimed and how often it
 claimed success outside the tolerance, collisions, recoveries, max and RMS localization error, time per metre.
 
 Suite TOML::
