@@ -72,8 +72,8 @@ def bench_footprint(window_s: float = 60.0) -> list[BenchRow]:
         cores = {s: (cpu_seconds(p) - cpu0[s]) / elapsed for s, p in pids.items()}
         rss = {s: rss_mb(p) for s, p in pids.items()}
     rows = [
-        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.5"),
-        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 600"),
+        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.30"),
+        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 450"),
     ]
     for s in services:
         rows.append(BenchRow(f"stack.{s}.cpu_cores", cores[s], "cores"))

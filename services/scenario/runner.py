@@ -69,13 +69,20 @@ TERMINAL = ("succeeded", "failed", "canceled")
 # --------------------------------------------------------------------------- running
 
 
+#: wall seconds a goal request is re-sent for while nav's reply does not arrive
+GOAL_REQUEST_DEADLINE_S = 60.0
+#: wall seconds one ask of a scenario request waits for its answer
+ATTEMPT_TIMEOUT_S = 20.0
+
+
 async def query_until(c: Client, name: str, req: m.Message, deadline_s: float) -> Any:
     """``c.query`` asked again while nothing answers (a service busy relocalizing on a loaded machine), until
-    ``deadline_s`` of wall time; the last QueryError then."""
+    ``deadline_s`` of wall time; the last QueryError then. Each ask waits up to ``ATTEMPT_TIMEOUT_S``: on a
+    loaded machine an answer can take seconds, and one that comes late is still the answer."""
     deadline = time.monotonic() + deadline_s
     while True:
         try:
-            return await c.query(name, req)
+            return await c.query(name, req, timeout_s=max(1.0, min(ATTEMPT_TIMEOUT_S, deadline - time.monotonic())))
         except QueryError:
             if time.monotonic() > deadline:
                 raise
@@ -146,6 +153,15 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
         result["loc_error_rms_m"] = round(float(np.sqrt(np.mean(le ** 2))), 4)
 
 
+
+
+def unsent_goal_result(goal: Goal, why: str) -> dict:
+    """The result of a goal whose request nav never answered."""
+    return {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
+            "time_s": 0.0, "claimed": "not sent", "nav_error": why, "recoveries": 0, "collisions": 0,
+            "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
+
+
 async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, timeout_s: float,
                    legs: list[Leg] | None, xy_tol_m: float = 0.05, yaw_tol_rad: float = 0.05,
                    map_error_allowance_m: float = 0.0) -> dict:
@@ -155,10 +171,10 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     placed: list[str] = []
     req = m.GoalRequest(pose=m.Pose2D(x=goal.pose[0], y=goal.pose[1], theta=goal.pose[2]),
                         id=f"r{run}g{goal.id}")
-    deadline = time.monotonic() + 30.0
-    while True:  # a reply lost under load: ask again (the same id, so nav takes it as the same goal)
+    deadline = time.monotonic() + GOAL_REQUEST_DEADLINE_S
+    while True:  # a reply lost or late under load: ask again (the same id and pose: nav keeps the goal running)
         try:
-            reply: m.GoalReply = await c.query("nav/goal", req)
+            reply: m.GoalReply = await c.query("nav/goal", req, timeout_s=ATTEMPT_TIMEOUT_S)
             break
         except QueryError:
             if time.monotonic() > deadline:
@@ -167,7 +183,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
     while not reply.accepted and ("no robot pose" in reply.reason or "no map" in reply.reason) \
             and time.monotonic() < deadline:
         await asyncio.sleep(0.2)  # nav has not yet seen odometry, map->odom or the map
-        reply = await c.query("nav/goal", req)
+        reply = await c.query("nav/goal", req, timeout_s=ATTEMPT_TIMEOUT_S)
     t0 = c.sim_time
     collisions_before = c.collisions
     result: dict[str, Any] = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
@@ -273,9 +289,13 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                 break
             goals = []
             for k, goal in enumerate(sc.goals, 1):
-                res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None,
-                                     spec.goal_xy_tolerance_m, spec.goal_yaw_tolerance_rad,
-                                     sc.mapping.map_error_allowance_m if sc.mapping is not None else 0.0)
+                try:
+                    res = await run_goal(c, sc, run, k, goal, goal_timeout_s, legs if plots and run == 1 else None,
+                                         spec.goal_xy_tolerance_m, spec.goal_yaw_tolerance_rad,
+                                         sc.mapping.map_error_allowance_m if sc.mapping is not None else 0.0)
+                except QueryError as exc:  # this goal never reached nav: it counts as not reached, the run goes on
+                    c.leg = None
+                    res = unsent_goal_result(goal, str(exc))
                 goals.append(res)
                 err = ", ".join(f"{v:+.3f}" if v is not None else "-" for v in res["error"])
                 loc = ", ".join(f"{v:+.3f}" for v in c.localization_errors[-1]) if c.localization_errors else "-"
