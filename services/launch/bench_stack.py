@@ -16,9 +16,9 @@ from pathlib import Path
 
 from proto import codec
 from proto.messages import Clock, Pose2D, Waypoint, WaypointsRequest
-from services.cli.stack_process import Stack
 from services.common.bench import BenchRow
 from services.common.query import query
+from services.launch.stack_process import Stack
 
 #: corridor goals of the paper's Table 3, driven in order while measuring
 CORRIDOR_ROUTE = [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (13.6, 3.2, -1.0), (24.4, 3.5, 1.57)]
