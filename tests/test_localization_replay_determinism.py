@@ -9,9 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from services.common.world import World
 from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.scan_queue import ScanQueue
-from services.localization.synthetic import Laser, World
+from services.localization.synthetic import Laser
 
 MOUNT = (0.45, 0.0, 0.0)
 
@@ -64,13 +65,13 @@ def test_arrival_order_does_not_change_which_odometry_a_scan_gets() -> None:
 
 
 def room() -> tuple[World, Laser]:
-    world = World(np.array([[0.0, 0.0, 8.0, 4.0]]), np.array([[5.0, 1.0, 5.5, 2.0]]), (-0.5, -0.5, 8.5, 4.5), 0.05)
+    world = World.from_rectangles("room", 0.05, [-0.5, -0.5, 8.5, 4.5], [[0.0, 0.0, 8.0, 4.0]], [[5.0, 1.0, 5.5, 2.0]])
     return world, Laser(world)
 
 
 def test_a_seeded_filter_repeats_itself_from_each_initialisation_whatever_came_before() -> None:
     world, laser = room()
-    grid = world.render()
+    grid = world.occupancy_map()
     params = AmclParams(random_seed=11, update_min_d=0.05)
 
     route = [(2.0 + 0.06 * k, 2.0, 0.01 * k) for k in range(12)]

@@ -8,10 +8,9 @@ import pytest
 
 from proto import codec
 from proto import messages as m
-from services.cli.replay import _recorded_requests
 from services.common.service_events import ServiceEventLog, event_topic, query_of
 from services.recorder.bag import BagRecorder
-from services.recorder.service_requests import RecordedRequest, RequestSchedule, collect
+from services.recorder.service_requests import RecordedRequest, RequestSchedule, collect, recorded_requests
 from services.recorder.source import BagSource
 
 TOPIC = "localization/nomotion/_service_event"
@@ -98,6 +97,6 @@ def test_recorded_events_survive_the_bag_and_become_requests(tmp_path: Path) -> 
     rec.close()
     with BagSource(tmp_path / "bag") as src:
         assert src.topics["/" + TOPIC] == "zagv_msgs/msg/Message"
-        reqs = _recorded_requests(src, src.start_ns, src.end_ns)
+        reqs = recorded_requests(src, src.start_ns, src.end_ns)
         assert not src.problems
     assert reqs == [RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), int(0.16e9), "scan", 0.2)]

@@ -85,3 +85,12 @@ class RequestSchedule:
         out = sorted(self.anchored + self.timed, key=lambda r: r.log_ns)
         self.anchored, self.timed = [], []
         return out
+
+
+def recorded_requests(source, start_ns: int, end_ns: int) -> list[RecordedRequest]:  # BagSource
+    """The service requests recorded in the bag's ``_service_event`` topics within [start_ns, end_ns]."""
+    names = {t.lstrip("/") for t in source.topics if query_of(t.lstrip("/")) is not None}
+    if not names:
+        return []
+    return collect((t_ns, name, msg) for t_ns, name, msg in source.messages(start_ns, end_ns, names)
+                   if isinstance(msg, ServiceEvent))
