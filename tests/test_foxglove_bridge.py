@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from proto import messages as m
-from services.cli.stack_process import Stack
 from services.common.ports import free_port
 from services.common.robot import RobotSpec
 from services.foxglove_bridge import convert
+from services.launch.stack_process import Stack
 
 CLIENT_DIR = Path(__file__).parent / "foxglove_client"
 

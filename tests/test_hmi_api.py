@@ -155,7 +155,10 @@ def test_jog_is_clamped_published_and_dead_man_stops_it(hmi):
             seen = list(got)
         moving = [t for _, t in seen if t.vx != 0.0]
         first_zero = next(ts for ts, t in seen if t.vx == 0.0 and t.wz == 0.0)
-        tail = seen[len(moving):]
+        # on a loaded machine a gap between two held requests can outlast the dead-man time: zeros in between are
+        # then right; what must hold is that everything after the last moving twist is zero
+        last_moving = max(i for i, (_, t) in enumerate(seen) if t.vx != 0.0)
+        tail = seen[last_moving + 1:]
         assert len(moving) >= 5
         assert all((t.vx, t.vy, t.wz) == pytest.approx((0.2, -0.05, -0.5)) for t in moving)
         assert tail and all((t.vx, t.vy, t.wz) == (0.0, 0.0, 0.0) for _, t in tail)

@@ -175,7 +175,7 @@ def test_login_is_throttled_per_client_and_failures_are_logged(hmi) -> None:
 def test_hmi_serves_https_with_the_lan_certificate_tooling(tmp_path) -> None:
     if not shutil.which("openssl") or not shutil.which("sh"):
         pytest.skip("openssl (and sh) are needed to make the test certificates; not found on PATH")
-    from services.cli.stack_process import REPO_ROOT
+    from services.launch.stack_process import REPO_ROOT
 
     pki = tmp_path / "pki"
     for args in (["ca"], ["zagv-hmi-web", "DNS:localhost", "IP:127.0.0.1"]):

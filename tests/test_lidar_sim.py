@@ -38,7 +38,7 @@ async def connect_when_listening(port: int, timeout_s: float = 20.0) -> ColaLink
 
 
 async def test_emulated_lms111_streams_the_world_seen_from_the_ground_truth_pose(stack_factory):
-    from services.sim.world import load_world  # the simulator's own world, as the ground truth
+    from services.common.world import load_world  # the simulator's own world, as the ground truth
 
     stack = stack_factory(services=["sim"], world="corridor").start()
     session = stack.session()

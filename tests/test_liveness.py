@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from proto.keys import Keys
-from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from services.launch.stack_process import REPO_ROOT, Stack
 from tests.support.processes import process_alive
 from tests.support.waiting import wait_for_sync
 

@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from services.common.map_io import OccupancyMap
 from services.common.se2 import compose, inverse
+from services.common.world import World
 from services.localization.amcl import (
     Amcl,
     AmclParams,
@@ -18,14 +20,13 @@ from services.localization.amcl import (
     kld_limit,
     select_beams,
 )
-from services.localization.map_io import OccupancyMap
 from services.localization.odom_history import OdomHistory
-from services.localization.synthetic import Laser, World
+from services.localization.synthetic import Laser
 
 
 def room() -> tuple[World, OccupancyMap]:
-    world = World(np.array([[0.0, 0.0, 8.0, 4.0]]), np.array([[5.0, 1.0, 5.5, 2.0]]), (-0.5, -0.5, 8.5, 4.5), 0.05)
-    return world, world.render()
+    world = World.from_rectangles("room", 0.05, [-0.5, -0.5, 8.5, 4.5], [[0.0, 0.0, 8.0, 4.0]], [[5.0, 1.0, 5.5, 2.0]])
+    return world, world.occupancy_map()
 
 
 def test_beam_step_matches_nav2():

@@ -1,4 +1,4 @@
-"""AMCL in the corridor world with a synthetic laser (exact ray casting, 12 mm noise) and noisy odometry.
+"""AMCL in the corridor world with a synthetic laser (the world's ray casting, 12 mm noise) and noisy odometry.
 
 Acceptance figures at core level: tracking along the Table 3 route, global localization, kidnapping.
 """
@@ -8,18 +8,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.common.world import World
 from services.localization.amcl import Amcl, AmclParams
-from services.localization.synthetic import TABLE3_ROUTE, Odometry, World, drive, route
+from services.localization.synthetic import TABLE3_ROUTE, Odometry, drive, route
 
 
 @pytest.fixture
-def world(shared_dir) -> World:
-    return World.load(shared_dir / "worlds" / "corridor.toml")
+def world() -> World:
+    return World.load_builtin("corridor")
 
 
 @pytest.fixture
 def grid(world):
-    return world.render()
+    return world.occupancy_map()
 
 
 def test_tracking_along_the_table3_route(world, grid):

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.common.map_io import load_map
 from services.localization.amcl import Amcl, AmclParams
-from services.localization.map_io import load_map
 from services.localization.realmap import (
     GridLaser,
     axis_aligned,

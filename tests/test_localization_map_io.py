@@ -13,7 +13,7 @@ from PIL import Image
 from proto import decode_as, encode
 from proto.messages import OccupancyGrid
 from services.cli.main import main as zagv_main
-from services.localization.map_io import MapError, OccupancyMap, load_map, save_map
+from services.common.map_io import MapError, OccupancyMap, load_map, save_map
 
 
 def write_map(tmp: Path, pixels: np.ndarray, *, name: str = "m", ext: str = "pgm", mode_line: str = "",

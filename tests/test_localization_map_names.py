@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from proto.messages import ModeRequest, SaveMapRequest
-from services.cli.stack_process import REPO_ROOT, Stack
+from services.common.map_io import MAX_YAML_BYTES, MapError, load_map, read_map_yaml
 from services.common.node import QueryError, query
-from services.localization.map_io import MAX_YAML_BYTES, MapError, load_map, read_map_yaml
+from services.launch.stack_process import REPO_ROOT, Stack
 
 pytestmark = pytest.mark.integration
 

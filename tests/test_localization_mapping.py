@@ -29,9 +29,9 @@ from proto.messages import (
     SaveMapRequest,
     Twist2D,
 )
+from services.common.map_io import FREE, OCCUPIED, load_map
 from services.common.node import Node
 from services.common.se2 import wrap_angle
-from services.localization.map_io import FREE, OCCUPIED, load_map
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
 from services.localization.slam.map_files import read_trajectory
 from tests.support.hmi import HmiClient, base_url, password_of

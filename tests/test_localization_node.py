@@ -24,12 +24,13 @@ from proto.messages import (
     PoseWithCovariance,
     Transform2D,
 )
+from services.common.map_io import save_map
 from services.common.node import Node
 from services.common.se2 import compose
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
-from services.localization.map_io import save_map
-from services.localization.synthetic import Laser, World, route
+from services.common.world import World
+from services.localization.synthetic import Laser, route
 from tests.support.waiting import wait_for
 
 REPO = Path(__file__).resolve().parents[1]
@@ -39,9 +40,9 @@ pytestmark = pytest.mark.integration
 
 def small_world() -> World:
     """A 12 m x 5 m room with a side bay and two boxes (enough features to localize along x)."""
-    free = np.array([[0.0, 0.0, 12.0, 5.0], [4.0, 5.0, 6.0, 6.5]])
-    obstacles = np.array([[2.0, 1.0, 2.6, 1.6], [8.0, 3.0, 9.0, 3.4]])
-    return World(free, obstacles, (-0.5, -0.5, 12.5, 7.0), 0.05)
+    free = [[0.0, 0.0, 12.0, 5.0], [4.0, 5.0, 6.0, 6.5]]
+    obstacles = [[2.0, 1.0, 2.6, 1.6], [8.0, 3.0, 9.0, 3.4]]
+    return World.from_rectangles("room", 0.05, [-0.5, -0.5, 12.5, 7.0], free, obstacles)
 
 
 class Service:
@@ -102,7 +103,7 @@ class Robot:
 
 async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(router, tmp_path):
     world = small_world()
-    map_yaml, _ = save_map(world.render(), tmp_path / "room")
+    map_yaml, _ = save_map(world.occupancy_map(), tmp_path / "room")
     keys = Keys("loc1")
     client = Node("tester", open_session(ZenohSettings(connect=[router])), keys)
     poses: list[PoseWithCovariance] = []

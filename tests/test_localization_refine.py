@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
+from services.common.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from services.localization.amcl import Amcl, AmclParams, ParticleFilter, ScanBeams, select_beams
-from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from services.localization.realmap import MOUNT, GridLaser
 from services.localization.refine import BeamModel, refine_pose
 

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.common.map_io import OccupancyMap, load_map
 from services.common.se2 import wrap_angle
+from services.common.world import World
 from services.localization.amcl import Amcl, AmclParams, select_beams
 from services.localization.config import LocalizationConfig
-from services.localization.map_io import OccupancyMap, load_map
 from services.localization.settle import AtRestSettler
-from services.sim.world import World
 
 MOUNT = (0.45, 0.0, 0.0)
 ERROR_LIMIT_M = 0.02

@@ -222,6 +222,20 @@ def test_cancel_stops_the_robot() -> None:
     assert nav.step(sim.t, tuple(sim.pose)) == (0.0, 0.0, 0.0)
 
 
+def test_the_active_goal_sent_again_keeps_running_and_a_new_one_preempts_it() -> None:
+    """A client re-sends a goal whose reply was lost or late (same id and pose): nav keeps it as it is."""
+    nav, sim = make((0.0, 0.0, 0.0))
+    ok, gid, _ = nav.start_goal(0.0, (3.0, 3.5, 0.0), "g1")
+    assert ok and gid == "g1"
+    drive(nav, sim, 5.0)
+    state, started, seq = nav.state, nav.goal.started_at, nav.goal.seq
+    assert state in ("driving", "rotating")
+    assert nav.start_goal(sim.t, (3.0, 3.5, 0.0), "g1") == (True, "g1", "")
+    assert (nav.state, nav.goal.started_at, nav.goal.seq) == (state, started, seq) and not nav.finished
+    assert nav.start_goal(sim.t, (3.0, 3.0, 0.0), "g1")[0]  # same id, another pose: a new goal
+    assert nav.finished[-1] == ("g1", "canceled", "preempted by goal g1") and nav.state == "planning"
+
+
 def test_waypoints_pause_resume_skip_and_results() -> None:
     nav, sim = make((0.0, 0.0, 0.0))
     wps = [("a", (1.5, 0.0, 0.0)), ("b", (3.0, 0.0, 0.0)), ("c", (3.0, 3.0, 1.57))]

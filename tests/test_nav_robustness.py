@@ -10,17 +10,20 @@ import numpy as np
 import pytest
 
 from proto import messages as m
-from services.cli.scenario import Goal, Leg, judge_leg, leg_totals, load_scenario
-from services.cli.scenario_generate import free_space, generate_file, generate_goals
-from services.cli.scenario_suite import bench_rows, load_suite, row_figures
 from services.common.grid import axis_aligned
 from services.common.robot import RobotSpec
+from services.common.world import World
 from services.nav.astar import planning_cost
 from services.nav.config import NavConfig
 from services.nav.costmap import LETHAL, ScanObservation
 from services.nav.navigator import Navigator, PlanRequest
 from services.nav.pose_tracker import PoseTracker
-from services.sim.world import World
+from services.scenario.client import Leg
+from services.scenario.generate import free_space, generate_file, generate_goals
+from services.scenario.model import Goal, load_scenario
+from services.scenario.report import leg_totals
+from services.scenario.runner import judge_leg
+from services.scenario.suite import bench_rows, load_suite, row_figures
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -85,7 +88,7 @@ def test_generated_goals_have_clearance_and_connect_to_the_start(tmp_path: Path)
 
 
 def test_generation_names_a_map_too_narrow_for_the_robot() -> None:
-    from services.cli.scenario_generate import GenerateError
+    from services.scenario.generate import GenerateError
 
     w = World.from_dict({"name": "narrow", "resolution_m": 0.05, "extent_m": [0, 0, 10, 3],
                          "free": [[0.5, 0.5, 9.5, 1.9]]})

@@ -10,16 +10,18 @@ import numpy as np
 import pytest
 
 from proto import messages as m
-from services.cli.scenario import Goal, Leg, ScenarioError, draw_plots, format_table, load_scenario, summarize
-from services.cli.scenario_mapping import (
+from services.common.map_io import OccupancyMap
+from services.common.robot import RobotSpec
+from services.scenario.client import Leg
+from services.scenario.mapping import (
     arrived,
     costmap_follows,
     jog_command,
     route_clearance_problems,
     route_length_m,
 )
-from services.common.robot import RobotSpec
-from services.localization.map_io import OccupancyMap
+from services.scenario.model import Goal, ScenarioError, load_scenario
+from services.scenario.report import draw_plots, format_table, summarize
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -124,6 +124,25 @@ async def test_query_error_names_the_key_and_the_real_wait(client):
     caller.close()
 
 
+async def test_a_queryable_too_slow_for_the_deadline_is_no_answer_not_an_error_reply(client):
+    """Zenoh ends a get whose timeout ran out with an error reply "Timeout": that is a missing answer (NoAnswer,
+    the queryable matched), not the service's refusal, so callers that retry on NoAnswer retry it."""
+    keys = Keys("t5b")
+    caller = Node("cli", client(), keys)
+    server = Node("srv", client(), keys)
+
+    async def slow(_: Empty) -> Reply:
+        await asyncio.sleep(1.5)
+        return Reply(ok=True, message="late")
+
+    server.queryable("drive/enable", slow)
+    with pytest.raises(NoAnswer) as err:
+        await caller.query("drive/enable", timeout_s=0.6)
+    assert "a queryable matched but sent no reply" in str(err.value)
+    server.close()
+    caller.close()
+
+
 async def test_latched_topic_reaches_early_joiner_and_survives_a_producer_restart(client):
     keys = Keys("t6")
     consumer = Node("consumer", client(), keys)

@@ -26,9 +26,9 @@ from services.cli.bench_record import (
     replay_speed_factor,
     trajectory_rms_m,
 )
-from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.node import query
 from services.common.se2 import compose
+from services.launch.stack_process import REPO_ROOT, Stack
 from tests.support.waiting import wait_for_sync
 from tests.test_record_replay import check_bag_matches_published
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from services.common.map_io import FREE, OCCUPIED, UNKNOWN, load_map
 from services.common.ros_map import trinary_pixels, write_ros_map
-from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, load_map
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

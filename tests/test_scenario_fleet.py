@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.scenario import ScenarioError, load_scenario
-from services.cli.scenario_fleet import FleetResult, blocked_and_deadlocks, format_fleet, merge_contacts
-from services.cli.scenario_generate import generate_file
-from services.sim.world import World
+from services.common.world import World
+from services.scenario.fleet import FleetResult, blocked_and_deadlocks, format_fleet, merge_contacts
+from services.scenario.generate import generate_file
+from services.scenario.model import ScenarioError, load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -89,7 +89,7 @@ def test_generate_places_several_robots_apart(tmp_path) -> None:  # noqa: ANN001
 
 
 def test_closest_approach_per_pair() -> None:
-    from services.cli.scenario_fleet import closest_approach
+    from services.scenario.fleet import closest_approach
 
     tracks = {"a": {0.0: (0.0, 0.0), 1.0: (1.0, 0.0), 2.0: (2.0, 0.0)},
               "b": {0.0: (5.0, 0.0), 1.0: (3.0, 0.0), 2.0: (4.0, 0.0)},

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.scenario import ScenarioError, load_scenario
-from services.cli.scenario_vda5050 import (
+from services.scenario.model import ScenarioError, load_scenario
+from services.scenario.vda5050 import (
     NodePass,
     OrderNode,
     RobotOrderResult,
@@ -120,7 +120,7 @@ def test_the_report_gives_figures_per_robot_and_fails_on_any_miss() -> None:
 
 
 def test_each_robot_of_a_fleet_gets_its_own_serial_number(tmp_path) -> None:  # noqa: ANN001
-    from services.cli.up import StackPlan, resolve_fleet
+    from services.launch.up import StackPlan, resolve_fleet
 
     plan = StackPlan(run_dir=str(tmp_path), headless=True, robot_count=3, vda5050=True, mqtt_port=1999)
     resolve_fleet(plan)

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from services.common.robot import RobotSpec
+from services.common.world import World, WorldError
 from services.sim.config import SimConfig, SimRobot
 from services.sim.fleet import Fleet, start_poses
 from services.sim.scan_source import Body, ray_discs
-from services.sim.world import World, WorldError
 
 RADIUS_M = 0.63
 
@@ -114,8 +114,8 @@ def test_world_robots_table_is_read_and_checked() -> None:
 def test_launcher_plans_one_simulator_and_a_stack_per_robot(tmp_path) -> None:  # noqa: ANN001
     import tomllib
 
-    from services.cli.fleet import RobotSlot, fleet_slots, parse_robot_arg
-    from services.cli.up import StackPlan, resolve_fleet
+    from services.launch.fleet import RobotSlot, fleet_slots, parse_robot_arg
+    from services.launch.up import StackPlan, resolve_fleet
 
     assert parse_robot_arg("r7:1,2.5,-3") == RobotSlot("r7", (1.0, 2.5, -3.0))
     assert parse_robot_arg("left") == RobotSlot("left")

@@ -9,6 +9,7 @@ import pytest
 
 from services.common.motor_units import MotorUnits
 from services.common.robot import RobotSpec
+from services.common.world import World
 from services.sim.config import SimConfig
 from services.sim.robot_model import (
     SlipModel,
@@ -19,7 +20,6 @@ from services.sim.robot_model import (
     lsq_twist_matrix,
 )
 from services.sim.simulation import Simulation
-from services.sim.world import World
 
 UNITS = MotorUnits(wheel_radius_m=0.1, gear_ratio=30.0, traction_counts_per_rev=4096, steer_counts_per_rev=204800,
                    steer_motor_counts_per_rev=4096, steer_zero_counts=1000)

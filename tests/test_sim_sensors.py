@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from services.common.motor_units import MotorUnits
+from services.common.world import World
 from services.sim.razor import RazorImu
 from services.sim.robot_model import SwerveRobot
 from services.sim.scan_source import ScanSource
-from services.sim.world import World
 
 
 def parse_ypr(line: bytes) -> tuple[float, float, float]:

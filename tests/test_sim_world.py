@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from services.sim.world import World, WorldError, builtin_worlds, load_world
+from services.common.world import World, WorldError, builtin_worlds, load_world
 
 
 @pytest.fixture(scope="module")

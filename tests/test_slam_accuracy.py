@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.cli.map_bench import bench_log
+from services.localization.slam.map_bench import bench_log
 
 #: (log, acceptance bound of the mean translational error in m with clean odometry; gmapping's published figure)
 LOGS = [

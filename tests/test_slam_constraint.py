@@ -11,12 +11,13 @@ import numpy as np
 import pytest
 
 from services.common.se2 import compose, inverse, transform_points
+from services.common.world import World
 from services.localization.slam.constraint import match_constraint
 from services.localization.slam.likelihood import MultiResolutionGrid
 from services.localization.slam.mapper import GraphSlam, SlamConfig, scan_to_points
 from services.localization.slam.matcher import refine, translation_curvature
 from services.localization.slam.visibility import ViewProfiles
-from services.localization.synthetic import Laser, World
+from services.localization.synthetic import Laser
 
 MOUNT = np.array([0.3, 0.0, 0.0])
 VISIBILITY_MARGIN_M = 0.15  # the opt-in visibility filter (SlamConfig.match_visibility_margin_m)
@@ -25,7 +26,7 @@ VISIBILITY_MARGIN_M = 0.15  # the opt-in visibility filter (SlamConfig.match_vis
 def _world(free: list[list[float]]) -> World:
     rects = np.array(free, float)
     extent = (rects[:, 0].min() - 1, rects[:, 1].min() - 1, rects[:, 2].max() + 1, rects[:, 3].max() + 1)
-    return World(rects, np.zeros((0, 4)), extent, 0.05)
+    return World.from_rectangles("rooms", 0.05, list(extent), rects.tolist(), [])
 
 
 CORRIDOR = _world([[-60.0, -1.0, 60.0, 1.0]])  # 2 m wide, its ends out of the laser's 20 m range
@@ -176,11 +177,9 @@ def test_corridor_route_of_the_built_map_scenario_does_not_drift_along_the_corri
     corridor world with the simulator's near-perfect odometry: with the opt-in visibility filter the SLAM pose at the
     end of the main corridor stays within a few centimetres of the truth along it (0.15 m without it)."""
     from services.localization.slam.live import LiveMapper
-    from services.localization.synthetic import Odometry, find_world, route
+    from services.localization.synthetic import Odometry, route
 
-    path = find_world("corridor")
-    assert path is not None, "the corridor world is missing"
-    scan = _scanner(World.load(path))
+    scan = _scanner(World.load_builtin("corridor"))
     jog = [(0.0, 0.0, 0.0), (3.0, 0.1, 0.0), (3.0, 0.1, 3.1), (0.0, 3.25, 3.1), (3.0, 3.25, 0.0), (26.0, 3.25, 0.0),
            (23.5, 7.0, 1.57), (23.5, 13.4, 1.57)]
     truth = list(route(jog, step_m=0.02, step_rad=0.04))

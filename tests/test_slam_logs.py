@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from services.cli import map_tools
+from services.localization.slam.__main__ import main as slam_main
 from services.localization.slam.evaluation import parse_relations
 from services.localization.slam.logs import read_log
 
@@ -62,7 +62,7 @@ def test_read_log_rejects_unknown_formats(tmp_path):
 def test_map_build_and_eval_commands(logs_dir, tmp_path, capsys):
     log = str(logs_dir / "mit-csail.clf")
     relations = str(logs_dir / "mit-csail.relations")
-    assert map_tools.main(["build", log, "--out", str(tmp_path), "--max-scans", "120"]) == 0
+    assert slam_main(["build", log, "--out", str(tmp_path), "--max-scans", "120"]) == 0
     yaml_text = (tmp_path / "map.yaml").read_text()
     assert "image: map.pgm" in yaml_text and "mode: trinary" in yaml_text
     pgm = (tmp_path / "map.pgm").read_bytes()
@@ -74,7 +74,7 @@ def test_map_build_and_eval_commands(logs_dir, tmp_path, capsys):
     trajectory = tmp_path / "map.trajectory.txt"
     assert len(np.loadtxt(trajectory, ndmin=2)) == 120
     out = tmp_path / "err.json"
-    assert map_tools.main(["eval", log, relations, "--trajectory", str(trajectory), "--json", str(out)]) == 0
+    assert slam_main(["eval", log, relations, "--trajectory", str(trajectory), "--json", str(out)]) == 0
     figures = json.loads(out.read_text())
     assert figures["n_relations"] > 20 and figures["n_missing"] > 0  # only the first scans were mapped
     assert 0 <= figures["translation_mean_m"] < 0.1

@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from services.common.se2 import compose, inverse
+from services.common.world import World
 from services.localization.mapping import grid_to_map
 from services.localization.slam.evaluation import scan_poses
 from services.localization.slam.live import LiveMapper
@@ -18,7 +19,7 @@ from services.localization.slam.logs import LaserLog, LaserScanRecord
 from services.localization.slam.map_compare import occupied_f1
 from services.localization.slam.mapper import scan_to_points
 from services.localization.slam.odometry_noise import OdometryNoise
-from services.localization.synthetic import Laser, World, find_world, route
+from services.localization.synthetic import Laser, route
 
 ROTATED_MOUNT = np.array([0.25, 0.1, 0.3])
 #: laser poses along the lobby and into the main corridor of the corridor world
@@ -27,10 +28,9 @@ LASER_ROUTE = [(0.3, 0.0, 0.0), (4.0, 0.1, 0.0), (4.0, 0.1, math.pi / 2), (4.0, 
 
 def _recording(mount: np.ndarray):
     """(robot poses, ranges, angles) of the route's laser poses for a laser at ``mount`` (noise-free ranges: the
-    two recordings hold exactly the same numbers)."""
-    path = find_world("corridor")
-    assert path is not None, "the corridor world is missing"
-    laser = Laser(World.load(path), beams=541, fov_rad=math.radians(270.0), range_max=20.0, noise_m=0.0)
+    two recordings hold the same numbers, up to the rounding of robot pose ∘ mount: that can flip a beam which
+    grazes a cell corner of the world's raster)."""
+    laser = Laser(World.load_builtin("corridor"), beams=541, fov_rad=math.radians(270.0), range_max=20.0, noise_m=0.0)
     lasers = np.array(list(route(LASER_ROUTE, step_m=0.05, step_rad=0.05)))
     robots = compose(lasers, np.broadcast_to(inverse(mount), lasers.shape))
     ranges = [laser.scan(tuple(r), tuple(mount)) for r in robots]
@@ -49,7 +49,9 @@ def _live_map(robots, ranges, angles, mount_told: np.ndarray):
 def test_live_mapping_gives_the_same_laser_path_and_map_whatever_the_mount():
     lasers, robots0, ranges0, angles = _recording(np.zeros(3))
     _, robots1, ranges1, _ = _recording(ROTATED_MOUNT)
-    assert all(np.array_equal(a, b) for a, b in zip(ranges0, ranges1, strict=True))  # the same scans
+    differ = sum(int(np.count_nonzero(~np.isclose(a, b, rtol=0.0, atol=1e-6))) for a, b in zip(ranges0, ranges1,
+                                                                                                  strict=True))
+    assert differ <= 1e-4 * len(ranges0) * angles.size, differ  # the same scans but for beams grazing a corner
     path0, map0 = _live_map(robots0, ranges0, angles, np.zeros(3))
     path1, map1 = _live_map(robots1, ranges1, angles, ROTATED_MOUNT)
     error0 = np.hypot(*(path0[:, :2] - lasers[:, :2]).T)

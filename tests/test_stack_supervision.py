@@ -13,7 +13,7 @@ import pytest
 
 from proto import encode
 from proto.messages import Odometry, Twist2D
-from services.cli.stack_process import REPO_ROOT
+from services.launch.stack_process import REPO_ROOT
 from tests.support.waiting import wait_for_sync
 
 pytestmark = pytest.mark.integration

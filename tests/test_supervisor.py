@@ -5,7 +5,7 @@ from __future__ import annotations
 import signal
 import sys
 
-from services.cli.supervisor import ChildSpec, Supervisor
+from services.launch.supervisor import ChildSpec, Supervisor
 from tests.support.processes import process_alive
 from tests.support.waiting import wait_for
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.scenario_model import Scenario, load_scenario
-from services.cli.scenario_vda5050 import OrderNode, format_vda5050_fleet, order_message, run_orders, stack_args
+from services.scenario.model import Scenario, load_scenario
+from services.scenario.vda5050 import OrderNode, format_vda5050_fleet, order_message, run_orders, stack_args
 from tests.support.hmi import full_stack_available as robot_available
 from tests.support.stack import Stack
 from tests.support.vda5050 import Master, Mosquitto, Recorder

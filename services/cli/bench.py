@@ -1,7 +1,9 @@
 """``zagv bench [--only PREFIX] [--json FILE]``: run the benchmark groups and print a table.
 
-Groups come from the ``BENCHES`` lists of ``services/<name>/bench.py`` and ``services/cli/bench_*.py`` (see
-services.common.bench), imported when the command runs.
+Groups come from the ``BENCHES`` lists of each service's ``services/<name>/bench.py``, of the whole-stack benches in
+``services/launch/bench_*.py`` and ``services/scenario/bench.py``, of the SLAM log bench and of the recording bench
+(see services.common.bench), imported when the command runs. This discovery is developer tooling, the one place
+where the CLI imports service packages (inside ``discover``, never at module level).
 """
 
 from __future__ import annotations
@@ -18,12 +20,15 @@ from services.common.bench import BenchRow
 
 def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
     """Every (group, function) pair, cheapest first as each module lists them."""
-    from services.cli import bench_fleet, bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh
+    from services.cli import bench_record
     from services.drive import bench as drive_bench
     from services.hmi_api import bench as hmi_api_bench
+    from services.launch import bench_fleet, bench_stack, bench_zenoh
     from services.lidar import bench as lidar_bench
     from services.localization import bench as localization_bench
+    from services.localization.slam import bench_fr079 as bench_slam
     from services.nav import bench as nav_bench
+    from services.scenario import bench as bench_scenario
     from services.sim import bench as sim_bench
 
     modules = [bench_record, bench_scenario, bench_slam, bench_stack, bench_zenoh, drive_bench, hmi_api_bench,

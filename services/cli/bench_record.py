@@ -29,9 +29,9 @@ import zenoh
 
 from proto import codec
 from proto import messages as m
-from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.bench import BenchRow
 from services.common.se2 import compose
+from services.launch.stack_process import REPO_ROOT, Stack
 
 SCENARIO = REPO_ROOT / "scenarios" / "corridor_table3.toml"
 RECORDED = ("scan", "odom", "tf/map_odom", "pose")
@@ -69,7 +69,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
 
     With ``estop_at_s``, the recorder service (black box) runs too, and once the goals are done and the sim clock has
     passed ``estop_at_s`` the drive is e-stopped; the black box bag it leaves is waited for."""
-    from services.cli.scenario import load_scenario
+    from services.scenario.model import load_scenario
 
     sc = load_scenario(SCENARIO)
     sc.repeats = 1
@@ -149,7 +149,8 @@ async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
     initial pose of its configuration, so that a replay into a fresh localization starts from the same prior.
     Returns the runs and the sim time at which the ready stack was first seen publishing."""
-    from services.cli.scenario import Client, run_goal, wait_until
+    from services.scenario.client import Client, wait_until
+    from services.scenario.runner import run_goal
 
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:
@@ -167,8 +168,8 @@ async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
 
 async def _estop_at(stack: Stack, at_s: float) -> float:
     """Wait for sim time ``at_s``, e-stop the drive; returns the sim time of the e-stop."""
-    from services.cli.scenario import Client, wait_until
     from services.common.node import query
+    from services.scenario.client import Client, wait_until
 
     c = Client(stack.session(), stack.keys, asyncio.get_running_loop())
     try:

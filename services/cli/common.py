@@ -3,9 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
-import sys
 
 from proto.keys import DEFAULT_ROBOT_ID, Keys
 from services.common.session import open_session
@@ -25,13 +22,3 @@ def client_session(args: argparse.Namespace):  # zenoh.Session
 
 def client_keys(args: argparse.Namespace) -> Keys:
     return Keys(args.robot_id)
-
-
-def print_line(line: str) -> None:
-    """Print and flush; once stdout is gone (a closed pipe: the reader died) further lines are dropped, so that
-    shutting down the stack never fails on a log line."""
-    try:
-        print(line, flush=True)
-    except (BrokenPipeError, ValueError, OSError):
-        with contextlib.suppress(OSError, ValueError):
-            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process

@@ -1,162 +1,10 @@
-"""``zagv install-units``: render the systemd units of ``deploy/systemd/`` for one robot (or, with ``--site``,
-for the site server: its router and the fleet view, deploy/site.md).
-
-Templates are ``deploy/systemd/*.in`` with ``@@NAME@@`` placeholders (``$`` and ``%`` stay systemd's own). The
-rendered files go to ``--dest`` (default /etc/systemd/system); then ``systemctl daemon-reload`` and
-``systemctl enable --now zagv.target`` start the router and every service.
-"""
+"""``zagv install-units``: the arguments; rendering the systemd units is services.launch.install_units."""
 
 from __future__ import annotations
 
 import argparse
-import re
-import shutil
-import sys
-from dataclasses import dataclass
-from pathlib import Path
 
-#: the services that get a unit, in start order after the router
-SERVICES = ["drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api", "vda5050"]
-DEFAULT_DEST = "/etc/systemd/system"
-DEFAULT_CONFIG = "/etc/zagv/robot.toml"
-DEFAULT_ZENOH_CONFIG = "/etc/zagv/zenoh/router-loopback.json5"
-DEFAULT_SITE_CONFIG = "/etc/zagv/site.toml"
-DEFAULT_SITE_ZENOH_CONFIG = "/etc/zagv/zenoh/site-router-tls.json5"
-#: a SCHED_FIFO priority below the kernel's threaded IRQ handlers (50)
-DEFAULT_DRIVE_RT_PRIORITY = 40
-ROUTER_WATCHDOG_S = 10
-PLACEHOLDER = re.compile(r"@@([A-Z_]+)@@")
-#: a systemd network interface name: what may follow sys-subsystem-net-devices- unescaped
-INTERFACE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.:]{0,14}$")
-#: paths that ProtectHome=yes hides from the services
-HIDDEN_BY_PROTECT_HOME = ("/home", "/root", "/run/user")
-
-
-class InstallError(Exception):
-    """A bad option or a missing template: the message says which."""
-
-
-@dataclass(frozen=True)
-class UnitOptions:
-    venv: Path
-    user: str
-    config: str = DEFAULT_CONFIG
-    can_interface: str = "can0"
-    router: str = "zagv"  # "zagv" (zagv router) or "zenohd"
-    zenohd: str = ""  # path of zenohd when router == "zenohd"
-    zenoh_config: str = DEFAULT_ZENOH_CONFIG
-    drive_cpu: int = 1
-    drive_rt_priority: int = DEFAULT_DRIVE_RT_PRIORITY
-    #: the site server's units instead of a robot's
-    site: bool = False
-
-    @property
-    def python(self) -> Path:
-        return self.venv / "bin" / "python"
-
-
-def default_templates_dir() -> Path:
-    """``deploy/systemd`` of the checkout this module belongs to."""
-    return Path(__file__).resolve().parents[2] / "deploy" / "systemd"
-
-
-def unit_names(site: bool = False) -> list[str]:
-    """Every unit rendered: the router, one per service, and the target (a site: its router, the fleet view and
-    zagv-site.target)."""
-    if site:
-        return ["zagv-site-router.service", "zagv-fleet.service", "zagv-site.target"]
-    return ["zagv-router.service", *(f"zagv-{name}.service" for name in SERVICES), "zagv.target"]
-
-
-def check_options(opts: UnitOptions) -> list[str]:
-    """Raise InstallError for options that cannot work; return warnings for ones that probably will not."""
-    warnings: list[str] = []
-    if not opts.venv.is_absolute():
-        raise InstallError(f"--venv {opts.venv}: must be an absolute path (systemd runs it from /)")
-    if not opts.user or not re.fullmatch(r"[a-z_][a-z0-9_-]*[$]?", opts.user) or opts.user == "root":
-        raise InstallError(f"--user {opts.user!r}: a dedicated, unprivileged system user name (not root)")
-    if not opts.config.startswith("/") or any(c.isspace() for c in opts.config):
-        raise InstallError(f"--config {opts.config!r}: an absolute path without spaces")
-    if not opts.zenoh_config.startswith("/") or any(c.isspace() for c in opts.zenoh_config):
-        raise InstallError(f"--zenoh-config {opts.zenoh_config!r}: an absolute path without spaces")
-    if not INTERFACE_NAME.match(opts.can_interface):
-        raise InstallError(f"--can-interface {opts.can_interface!r}: a network interface name such as can0")
-    if opts.router not in ("zagv", "zenohd"):
-        raise InstallError(f"--router {opts.router!r}: zenohd or zagv")
-    if opts.router == "zenohd" and not opts.zenohd:
-        raise InstallError("--router zenohd: zenohd is not on PATH (install it or use --router zagv)")
-    if opts.drive_cpu < 0:
-        raise InstallError(f"--drive-cpu {opts.drive_cpu}: a CPU index >= 0")
-    if not 1 <= opts.drive_rt_priority <= 99:
-        raise InstallError(f"--drive-rt-priority {opts.drive_rt_priority}: a SCHED_FIFO priority in 1..99")
-    if any(c.isspace() for c in str(opts.venv)):
-        raise InstallError(f"--venv {opts.venv}: a path without spaces")
-    if not opts.python.exists():
-        warnings.append(f"{opts.python} does not exist (yet): the services will not start without it")
-    venv = str(opts.venv)
-    if any(venv == p or venv.startswith(p + "/") for p in HIDDEN_BY_PROTECT_HOME):
-        warnings.append(f"{opts.venv} is under a home folder, which ProtectHome=yes hides from the services: "
-                        "install the venv elsewhere, e.g. /opt/zagv/venv")
-    return warnings
-
-
-def substitutions(opts: UnitOptions) -> dict[str, str]:
-    if opts.router == "zenohd":
-        router_exec = f"{opts.zenohd} -c {opts.zenoh_config}"
-        router_type = "exec"
-        router_watchdog = "# zenohd does not notify systemd: no watchdog, started once exec() succeeded"
-    else:
-        router_exec = f"{opts.python} -m services.cli router --config {opts.zenoh_config}"
-        router_type = "notify"
-        router_watchdog = f"NotifyAccess=main\nWatchdogSec={ROUTER_WATCHDOG_S}s"
-    return {
-        "PYTHON": str(opts.python),
-        "USER": opts.user,
-        "CONFIG": opts.config,
-        "CAN_INTERFACE": opts.can_interface,
-        "DRIVE_CPU": str(opts.drive_cpu),
-        "DRIVE_RT_PRIORITY": str(opts.drive_rt_priority),
-        "ROUTER_KIND": "zenohd" if opts.router == "zenohd" else "zagv router",
-        "ROUTER_TYPE": router_type,
-        "ROUTER_EXEC": router_exec,
-        "ROUTER_WATCHDOG": router_watchdog,
-        "UNITS": " ".join(n for n in unit_names(opts.site) if not n.endswith(".target")),
-    }
-
-
-def render_text(template: str, values: dict[str, str], name: str) -> str:
-    """Replace every ``@@NAME@@``; an unknown placeholder is an error naming the template."""
-    def replace(match: re.Match[str]) -> str:
-        key = match.group(1)
-        if key not in values:
-            raise InstallError(f"template {name}: unknown placeholder @@{key}@@")
-        return values[key]
-
-    return PLACEHOLDER.sub(replace, template)
-
-
-def render_units(opts: UnitOptions, templates: Path | None = None) -> dict[str, str]:
-    """Unit file name -> rendered text for every unit of ``unit_names()``."""
-    templates = templates or default_templates_dir()
-    values = substitutions(opts)
-    units: dict[str, str] = {}
-    for name in unit_names(opts.site):
-        path = templates / f"{name}.in"
-        if not path.is_file():
-            raise InstallError(f"template {path} not found (run from a zagv checkout or pass --templates DIR)")
-        units[name] = render_text(path.read_text(), values, path.name)
-    return units
-
-
-def write_units(units: dict[str, str], dest: Path) -> list[Path]:
-    dest.mkdir(parents=True, exist_ok=True)
-    written = []
-    for name, text in units.items():
-        path = dest / name
-        path.write_text(text)
-        path.chmod(0o644)
-        written.append(path)
-    return written
+from services.launch import install_units
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -164,41 +12,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description="Render deploy/systemd/*.in for this robot and write the units to --dest.")
     p.add_argument("--venv", required=True, help="the virtualenv zagv is installed in (absolute path)")
     p.add_argument("--user", required=True, help="the dedicated system user the services run as")
-    p.add_argument("--dest", default=DEFAULT_DEST, help="where to write the units (default %(default)s)")
+    p.add_argument("--dest", default=install_units.DEFAULT_DEST, help="where to write the units (default %(default)s)")
     p.add_argument("--site", action="store_true",
                    help="the site server's units (site router, fleet view, zagv-site.target; deploy/site.md)")
-    p.add_argument("--config", help=f"robot TOML file (default {DEFAULT_CONFIG}; with --site {DEFAULT_SITE_CONFIG})")
+    p.add_argument("--config", help=f"robot TOML file (default {install_units.DEFAULT_CONFIG}; with --site "
+                                    f"{install_units.DEFAULT_SITE_CONFIG})")
     p.add_argument("--can-interface", default="can0", help="CAN interface of the drive (default %(default)s)")
     p.add_argument("--router", choices=["zenohd", "zagv"],
                    help="router program (default: zenohd when on PATH, else zagv router)")
-    p.add_argument("--zenoh-config", help=f"router json5 config (default {DEFAULT_ZENOH_CONFIG}; with --site "
-                                          f"{DEFAULT_SITE_ZENOH_CONFIG}; see deploy/zenoh/)")
+    p.add_argument("--zenoh-config", help=f"router json5 config (default {install_units.DEFAULT_ZENOH_CONFIG}; "
+                                          f"with --site {install_units.DEFAULT_SITE_ZENOH_CONFIG}; see deploy/zenoh/)")
     p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
-    p.add_argument("--drive-rt-priority", type=int, default=DEFAULT_DRIVE_RT_PRIORITY,
+    p.add_argument("--drive-rt-priority", type=int, default=install_units.DEFAULT_DRIVE_RT_PRIORITY,
                    help="SCHED_FIFO priority of the drive (default %(default)s)")
     p.add_argument("--templates", help="folder of the *.in templates (default: deploy/systemd of this checkout)")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    zenohd = shutil.which("zenohd") or ""
-    router = args.router or ("zenohd" if zenohd else "zagv")
-    config = args.config or (DEFAULT_SITE_CONFIG if args.site else DEFAULT_CONFIG)
-    zenoh_config = args.zenoh_config or (DEFAULT_SITE_ZENOH_CONFIG if args.site else DEFAULT_ZENOH_CONFIG)
-    opts = UnitOptions(venv=Path(args.venv), user=args.user, config=config, can_interface=args.can_interface,
-                       router=router, zenohd=zenohd, zenoh_config=zenoh_config, drive_cpu=args.drive_cpu,
-                       drive_rt_priority=args.drive_rt_priority, site=args.site)
-    try:
-        warnings = check_options(opts)
-        units = render_units(opts, Path(args.templates) if args.templates else None)
-        written = write_units(units, Path(args.dest))
-    except (InstallError, OSError) as exc:
-        print(f"zagv install-units: {exc}", file=sys.stderr)
-        return 2
-    for warning in warnings:
-        print(f"zagv install-units: warning: {warning}", file=sys.stderr)
-    for path in written:
-        print(f"wrote {path}")
-    target = "zagv-site.target" if opts.site else "zagv.target"
-    print(f"router: {opts.router}; next: systemctl daemon-reload && systemctl enable --now {target}")
-    return 0
+    return install_units.run(args)

@@ -1,16 +1,21 @@
 """``zagv map ...``: work with maps in the ROS map_server format.
 
 ``zagv map info YAML [--json]`` prints a map's size, resolution, origin and its free/occupied/unknown cell counts.
-Further subcommands register themselves in the same group (``SUBCOMMANDS``).
+``zagv map build|eval|bench|localize ...`` is offline SLAM, localization's own entry point: it runs
+``python -m services.localization.slam COMMAND ARGS...`` as a subprocess (arguments passed through unchanged, its
+output relayed, its exit code returned), so the CLI does not import the service.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+import threading
+from typing import IO
 
-from services.localization.map_io import MapError, load_map
+from services.common.map_io import MapError, load_map
 
 
 def info(args: argparse.Namespace) -> int:
@@ -50,36 +55,55 @@ def add_info(group: argparse._SubParsersAction) -> None:
     p.set_defaults(func=info)
 
 
-#: functions that add one subcommand to the ``map`` group
-def add_build(group: argparse._SubParsersAction) -> None:
-    from services.cli.map_tools import add_build_parser
-
-    add_build_parser(group)
-
-
-def add_eval(group: argparse._SubParsersAction) -> None:
-    from services.cli.map_tools import add_eval_parser
-
-    add_eval_parser(group)
+#: offline SLAM subcommands of ``python -m services.localization.slam`` (name, help)
+SLAM_COMMANDS = [
+    ("build", "build a map (YAML+PGM) and trajectory from a .clf or .bag log"),
+    ("eval", "relative-pose error (Kümmerle 2009) against ground-truth relations"),
+    ("bench", "build + evaluate a map from every log in a folder (table)"),
+    ("localize", "AMCL on corrected logs' real scans against their reference map"),
+]
+SLAM_MODULE = "services.localization.slam"
 
 
-def add_bench(group: argparse._SubParsersAction) -> None:
-    from services.cli.map_bench import add_bench_parser
-
-    add_bench_parser(group)
-
-
-def add_localize(group: argparse._SubParsersAction) -> None:
-    from services.cli.map_bench import add_localize_parser
-
-    add_localize_parser(group)
+def _relay(src: IO[str], stream_name: str) -> None:
+    """Copy lines to ``sys.<stream_name>``, looked up per line (pytest's capsys swaps it)."""
+    for line in src:
+        out = getattr(sys, stream_name)
+        out.write(line)
+        out.flush()
 
 
-SUBCOMMANDS = [add_info, add_build, add_eval, add_bench, add_localize]
+def run_slam_command(args: argparse.Namespace) -> int:
+    """``python -m services.localization.slam <command> <args>``; its output relayed, its exit code returned."""
+    cmd = [sys.executable, "-m", SLAM_MODULE, args.map_command, *args.slam_args]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        relays = [threading.Thread(target=_relay, args=(proc.stderr, "stderr"), daemon=True)]
+        relays[0].start()
+        try:
+            _relay(proc.stdout, "stdout")
+            proc.wait()
+        except KeyboardInterrupt:
+            proc.terminate()
+            proc.wait()
+            raise
+        finally:
+            for relay in relays:
+                relay.join(timeout=5.0)
+    return proc.returncode
+
+
+def add_slam_command(group: argparse._SubParsersAction, name: str, help_text: str) -> None:
+    # no options of its own (prefix "+" matches none): every argument, --help included, goes to the SLAM module
+    p = group.add_parser(name, help=f"{help_text} (python -m {SLAM_MODULE} {name} --help)", add_help=False,
+                         prefix_chars="+")
+    p.add_argument("slam_args", nargs="*", help=argparse.SUPPRESS)
+    p.set_defaults(func=run_slam_command)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("map", help="inspect and convert maps (ROS map_server YAML + image)")
     group = p.add_subparsers(dest="map_command", required=True, metavar="SUBCOMMAND")
-    for add in SUBCOMMANDS:
-        add(group)
+    add_info(group)
+    for name, help_text in SLAM_COMMANDS:
+        add_slam_command(group, name, help_text)

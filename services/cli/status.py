@@ -9,7 +9,7 @@ import msgspec
 import zenoh
 
 from services.cli.common import add_client_options, client_keys, client_session
-from services.cli.up import SERVICES
+from services.launch.up import SERVICES
 
 
 def register(sub: argparse._SubParsersAction) -> None:

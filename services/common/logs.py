@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import sys
@@ -16,3 +17,13 @@ def setup_logging(service: str, level: str | None = None) -> None:
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level or os.environ.get("ZAGV_LOG_LEVEL", "INFO"))
+
+
+def print_line(line: str) -> None:
+    """Print and flush; once stdout is gone (a closed pipe: the reader died) further lines are dropped, so that
+    shutting down the stack never fails on a log line."""
+    try:
+        print(line, flush=True)
+    except (BrokenPipeError, ValueError, OSError):
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - lives as long as the process

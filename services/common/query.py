@@ -41,6 +41,10 @@ class NoAnswer(QueryError):
         self.attempts = attempts
 
 
+#: the error payload Zenoh delivers when a get's timeout ran out before the queryable answered
+ZENOH_TIMEOUT = "Timeout"
+
+
 def _get_once(session: zenoh.Session, key: str, payload: bytes, timeout_s: float, rep_type: type,
               loop: asyncio.AbstractEventLoop) -> asyncio.Future[tuple[str, Any]]:
     """One ``get``: resolves to ("reply", msg), ("error", QueryError) or ("none", None) when it ended unanswered."""
@@ -63,7 +67,10 @@ def _get_once(session: zenoh.Session, key: str, payload: bytes, timeout_s: float
                 deliver(("error", QueryError(str(exc))))
         else:
             text = reply.err.payload.to_bytes().decode(errors="replace") if reply.err is not None else "no reply"
-            deliver(("error", QueryError(f"{key}: {text}")))
+            if text == ZENOH_TIMEOUT:  # Zenoh's own reply when the get's timeout ran out: nothing answered in time
+                deliver(("none", None))
+            else:
+                deliver(("error", QueryError(f"{key}: {text}")))
 
     def on_done() -> None:
         deliver(("none", None))

@@ -5,17 +5,23 @@
   (:func:`require_token` checks ``app.state.backend.tokens``, a :class:`services.common.auth.TokenStore`);
 - bodies: JSON only (415 otherwise), UTF-8 (400), decoded strictly against the handler's type (422) before
   Litestar's lax conversion (:func:`strict_body`);
+- the session routes ``POST /login`` and ``POST /logout`` (:func:`session_routes`), the same on both;
 - every response: same-origin Content-Security-Policy, no framing, no MIME sniffing, no referrer; a ``Host`` outside
   the allow-list gets 400 (DNS rebinding), WebSockets too (:func:`security_layer`).
 """
 
 from __future__ import annotations
 
+import asyncio
+from typing import Annotated
+
 import msgspec
-from litestar import Request
+from litestar import Request, post
 from litestar.connection import ASGIConnection
 from litestar.exceptions import ClientException, HTTPException, NotAuthorizedException, ValidationException
 from litestar.handlers.base import BaseRouteHandler
+from litestar.handlers.http_handlers import HTTPRouteHandler
+from litestar.status_codes import HTTP_200_OK
 
 #: security headers of every response: nothing from another origin, no framing, no MIME sniffing, no referrer
 SECURITY_HEADERS = {
@@ -115,3 +121,44 @@ def security_layer(allowed_hosts: list[str]):
         return middleware
 
     return factory
+
+
+class LoginRequest(msgspec.Struct, forbid_unknown_fields=True):
+    password: Annotated[str, msgspec.Meta(max_length=1024)]
+
+
+class LoginReply(msgspec.Struct):
+    token: str
+    expires_in_s: float
+
+
+class ActionReply(msgspec.Struct):
+    ok: bool
+    message: str = ""
+
+
+#: extra wait after a wrong password, on top of the throttle: slows guessing a little more
+WRONG_PASSWORD_DELAY_S = 0.5
+
+
+def session_routes(login_summary: str) -> tuple[HTTPRouteHandler, HTTPRouteHandler]:
+    """``POST /login`` (a bearer token for the right password, 401 for a wrong one) and ``POST /logout`` (the token
+    revoked), on ``app.state.backend``: its ``login(password, client)``, ``tokens`` and ``config.token_ttl_s``."""
+
+    @post("/login", status_code=HTTP_200_OK, summary=login_summary)
+    async def login(request: Request, data: LoginRequest) -> LoginReply:
+        backend = request.app.state.backend
+        token = await backend.login(data.password, request.client.host if request.client else "unknown")
+        if token is None:
+            await asyncio.sleep(WRONG_PASSWORD_DELAY_S)
+            raise NotAuthorizedException("wrong password")
+        return LoginReply(token=token, expires_in_s=backend.config.token_ttl_s)
+
+    @post("/logout", status_code=HTTP_200_OK)
+    async def logout(request: Request) -> ActionReply:
+        token = bearer_token(request)
+        if token:
+            request.app.state.backend.tokens.revoke(token)
+        return ActionReply(ok=True, message="logged out")
+
+    return login, logout

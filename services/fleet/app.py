@@ -31,7 +31,6 @@ from litestar.connection import WebSocket
 from litestar.exceptions import (
     ClientException,
     HTTPException,
-    NotAuthorizedException,
     ValidationException,
     WebSocketDisconnect,
 )
@@ -41,10 +40,12 @@ from litestar.status_codes import HTTP_200_OK
 from services.common.auth import LoginThrottled
 from services.common.web import (
     TOKEN_IN_QUERY,
+    ActionReply,
     UndecodableBody,
     bearer_token,
     require_token,
     security_layer,
+    session_routes,
     strict_body,
 )
 from services.fleet.backend import FleetBackend, RobotRejected, RobotUnavailable, UnknownRobot
@@ -55,15 +56,6 @@ log = logging.getLogger("zagv.fleet")
 Coord = Annotated[float, msgspec.Meta(ge=-1e6, le=1e6, description="map frame, m")]
 Angle = Annotated[float, msgspec.Meta(ge=-1e3, le=1e3, description="rad")]
 ROBOT_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
-
-
-class LoginRequest(msgspec.Struct, forbid_unknown_fields=True):
-    password: Annotated[str, msgspec.Meta(max_length=1024)]
-
-
-class LoginReply(msgspec.Struct):
-    token: str
-    expires_in_s: float
 
 
 class PoseIn(msgspec.Struct, forbid_unknown_fields=True):
@@ -86,9 +78,7 @@ class GoalAccepted(msgspec.Struct):
     robot_id: str
 
 
-class ActionReply(msgspec.Struct):
-    ok: bool
-    message: str = ""
+login, logout = session_routes("Log in with the fleet view's password; returns a bearer token")
 
 
 def _backend(request: Request | WebSocket) -> FleetBackend:
@@ -100,24 +90,6 @@ def _robot_id(robot_id: str) -> str:
     if not ROBOT_ID.fullmatch(robot_id):
         raise ValidationException(f"robot id {robot_id[:70]!r} is not a robot id (letters, digits, '_', '.', '-')")
     return robot_id
-
-
-@post("/login", status_code=HTTP_200_OK, summary="Log in with the fleet view's password; returns a bearer token")
-async def login(request: Request, data: LoginRequest) -> LoginReply:
-    b = _backend(request)
-    token = await b.login(data.password, request.client.host if request.client else "unknown")
-    if token is None:
-        await asyncio.sleep(0.5)
-        raise NotAuthorizedException("wrong password")
-    return LoginReply(token=token, expires_in_s=b.config.token_ttl_s)
-
-
-@post("/logout", status_code=HTTP_200_OK)
-async def logout(request: Request) -> ActionReply:
-    token = bearer_token(request)
-    if token:
-        _backend(request).tokens.revoke(token)
-    return ActionReply(ok=True, message="logged out")
 
 
 @get("/fleet", summary="Every robot at the site: pose, footprint, path, state, battery, faults, presence")

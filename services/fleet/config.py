@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import msgspec
 
+from services.common.web_config import check_web_access, host_allow_list
+
 
 class FleetConfig(msgspec.Struct, forbid_unknown_fields=True):
     """fleet settings (defaults for a site server on loopback).
@@ -42,27 +44,16 @@ class FleetConfig(msgspec.Struct, forbid_unknown_fields=True):
     battery_full_v: float = 52.0
 
     def __post_init__(self) -> None:
-        if self.password_hash:
-            from services.common.auth import check_hash_format
-
-            check_hash_format(self.password_hash, "fleet.password_hash")
-        if not 0 < self.port < 65536:
-            raise ValueError(f"fleet.port must be in 1..65535, got {self.port}")
-        if bool(self.tls_certificate) != bool(self.tls_private_key):
-            raise ValueError("fleet.tls_certificate and fleet.tls_private_key go together: set both or neither")
+        check_web_access("fleet", password_hash=self.password_hash, port=self.port,
+                         tls_certificate=self.tls_certificate, tls_private_key=self.tls_private_key,
+                         positive={name: getattr(self, name) for name in (
+                             "ws_rate_hz", "token_ttl_s", "query_timeout_s", "login_lockout_initial_s",
+                             "login_lockout_max_s")})
         if self.login_free_attempts < 1 or self.max_poses < 1 or self.path_max_points < 2:
             raise ValueError("fleet.login_free_attempts and fleet.max_poses must be >= 1, path_max_points >= 2")
-        for name in ("ws_rate_hz", "token_ttl_s", "query_timeout_s", "login_lockout_initial_s", "login_lockout_max_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"fleet.{name} must be > 0, got {getattr(self, name)}")
         if not self.battery_full_v > self.battery_empty_v:
             raise ValueError("fleet.battery_full_v must be above fleet.battery_empty_v")
 
     def host_allow_list(self) -> list[str]:
-        """The Host header names accepted: ``allowed_hosts``, else loopback plus ``host`` unless it is a wildcard."""
-        if self.allowed_hosts:
-            return list(self.allowed_hosts)
-        names = ["127.0.0.1", "localhost", "::1", "[::1]"]
-        if self.host not in ("0.0.0.0", "::", "") and self.host not in names:
-            names.append(self.host)
-        return names
+        """The Host header names accepted (``web_config.host_allow_list``)."""
+        return host_allow_list(self.host, self.allowed_hosts)

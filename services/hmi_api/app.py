@@ -32,7 +32,6 @@ from litestar.connection import WebSocket
 from litestar.exceptions import (
     ClientException,
     HTTPException,
-    NotAuthorizedException,
     ValidationException,
     WebSocketDisconnect,
 )
@@ -46,10 +45,14 @@ from services.common.auth import LoginThrottled
 from services.common.web import (  # noqa: F401 - SECURITY_HEADERS is part of this module's interface
     SECURITY_HEADERS,
     TOKEN_IN_QUERY,
+    ActionReply,
+    LoginReply,
+    LoginRequest,
     UndecodableBody,
     bearer_token,
     require_token,
     security_layer,
+    session_routes,
     strict_body,
 )
 from services.hmi_api import blackbox
@@ -84,15 +87,6 @@ class MapStopIn(msgspec.Struct, forbid_unknown_fields=True):
 
     map: Annotated[str, msgspec.Meta(pattern=r"^(?:[A-Za-z0-9_][A-Za-z0-9_.-]{0,63})?(?!\n)$",
                                      description="a saved map's name, or empty for the map saved last")] = ""
-
-
-class LoginRequest(msgspec.Struct, forbid_unknown_fields=True):
-    password: Annotated[str, msgspec.Meta(max_length=1024)]
-
-
-class LoginReply(msgspec.Struct):
-    token: str
-    expires_in_s: float
 
 
 class JogRequest(msgspec.Struct, forbid_unknown_fields=True):
@@ -157,15 +151,13 @@ class ImportRequest(msgspec.Struct, forbid_unknown_fields=True):
     replace: bool = False
 
 
-class ActionReply(msgspec.Struct):
-    ok: bool
-    message: str = ""
-
-
 class GoalAccepted(msgspec.Struct):
     accepted: bool
     goal_id: str
     reason: str = ""
+
+
+login, logout = session_routes("Log in with the HMI password; returns a bearer token")
 
 
 def _backend(request: Request | WebSocket) -> Backend:
@@ -173,25 +165,6 @@ def _backend(request: Request | WebSocket) -> Backend:
 
 
 # ---------------------------------------------------------------------------------------------- handlers
-
-
-@post("/login", status_code=HTTP_200_OK, summary="Log in with the HMI password; returns a bearer token")
-async def login(request: Request, data: LoginRequest) -> LoginReply:
-    b = _backend(request)
-    client = request.client.host if request.client else "unknown"
-    token = await b.login(data.password, client)
-    if token is None:
-        await asyncio.sleep(0.5)  # slows guessing a little more
-        raise NotAuthorizedException("wrong password")
-    return LoginReply(token=token, expires_in_s=b.config.token_ttl_s)
-
-
-@post("/logout", status_code=HTTP_200_OK)
-async def logout(request: Request) -> ActionReply:
-    token = bearer_token(request)
-    if token:
-        _backend(request).tokens.revoke(token)
-    return ActionReply(ok=True, message="logged out")
 
 
 @get("/status", summary="Odometry, map pose, wheel states, nav status, service health")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import msgspec
 
+from services.common.web_config import check_web_access, host_allow_list
+
 
 class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
     """hmi_api settings (defaults for the simulated robot).
@@ -43,26 +45,15 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
     tls_private_key: str = ""
 
     def __post_init__(self) -> None:
-        if self.password_hash:
-            from services.common.auth import check_hash_format
-
-            check_hash_format(self.password_hash, "hmi_api.password_hash")
-        if not 0 < self.port < 65536:
-            raise ValueError(f"hmi_api.port must be in 1..65535, got {self.port}")
-        if bool(self.tls_certificate) != bool(self.tls_private_key):
-            raise ValueError("hmi_api.tls_certificate and hmi_api.tls_private_key go together: set both or neither")
+        check_web_access("hmi_api", password_hash=self.password_hash, port=self.port,
+                         tls_certificate=self.tls_certificate, tls_private_key=self.tls_private_key,
+                         positive={name: getattr(self, name) for name in (
+                             "jog_timeout_s", "jog_rate_hz", "ws_rate_hz", "velocity_record_hz", "token_ttl_s",
+                             "velocity_history_s", "query_timeout_s", "login_lockout_initial_s",
+                             "login_lockout_max_s")})
         if self.login_free_attempts < 1 or self.max_poses < 1:
             raise ValueError("hmi_api.login_free_attempts and hmi_api.max_poses must be >= 1")
-        for name in ("jog_timeout_s", "jog_rate_hz", "ws_rate_hz", "velocity_record_hz", "token_ttl_s",
-                     "velocity_history_s", "query_timeout_s", "login_lockout_initial_s", "login_lockout_max_s"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"hmi_api.{name} must be > 0, got {getattr(self, name)}")
 
     def host_allow_list(self) -> list[str]:
-        """The Host header names accepted: ``allowed_hosts``, else loopback plus ``host`` unless it is a wildcard."""
-        if self.allowed_hosts:
-            return list(self.allowed_hosts)
-        names = ["127.0.0.1", "localhost", "::1", "[::1]"]
-        if self.host not in ("0.0.0.0", "::", "") and self.host not in names:
-            names.append(self.host)
-        return names
+        """The Host header names accepted (``web_config.host_allow_list``)."""
+        return host_allow_list(self.host, self.allowed_hosts)

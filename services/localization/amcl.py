@@ -32,8 +32,8 @@ import numpy as np
 from scipy import ndimage
 
 from services.common.grid import YAW_EPS_RAD, axis_aligned
+from services.common.map_io import FREE, UNKNOWN, OccupancyMap
 from services.common.se2 import compose, inverse, wrap_angle
-from services.localization.map_io import FREE, UNKNOWN, OccupancyMap
 from services.localization.refine import BeamModel, Refinement, refine_pose
 
 #: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg

@@ -9,8 +9,8 @@ import time
 import numpy as np
 
 from services.common.bench import BenchRow
+from services.common.map_io import OccupancyMap
 from services.localization.amcl import AmclParams, ParticleFilter, beam_indices
-from services.localization.map_io import OccupancyMap
 
 
 def cpu_time_calls(fn, *, repeat: int, warmup: int = 5, max_s: float = 10.0) -> np.ndarray:
@@ -73,15 +73,12 @@ def recovery_ms() -> float:
 
 def corridor_rms() -> list[BenchRow]:
     """Tracking error along the Table 3 route of the corridor world (synthetic laser and odometry, core level)."""
+    from services.common.world import World
     from services.localization.amcl import Amcl
-    from services.localization.synthetic import TABLE3_ROUTE, World, drive, find_world, route
+    from services.localization.synthetic import TABLE3_ROUTE, drive, route
 
-    path = find_world("corridor")
-    if path is None:
-        print("bench: amcl.rms_error_m skipped: corridor world file not found", file=sys.stderr)
-        return []
-    world = World.load(path)
-    amcl = Amcl(world.render(), AmclParams(random_seed=1))
+    world = World.load_builtin("corridor")
+    amcl = Amcl(world.occupancy_map(), AmclParams(random_seed=1))
     amcl.set_initial_pose(TABLE3_ROUTE[0])
     result = drive(amcl, world, list(route(TABLE3_ROUTE)), seed=1)
     return [
@@ -122,7 +119,7 @@ def run_lost(seeds: tuple[int, ...] = (1, 2)) -> list[BenchRow]:
     import os
     from pathlib import Path
 
-    from services.localization.map_io import load_map
+    from services.common.map_io import load_map
     from services.localization.realmap import initial_pose_trial, kidnap_trial
 
     root = Path(os.environ.get("ZAGV_SHARED", Path(__file__).resolve().parents[3] / "shared")) / "data" / "maps"

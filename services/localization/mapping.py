@@ -42,9 +42,9 @@ from proto.messages import (
     SaveMapRequest,
     Transform2D,
 )
+from services.common.map_io import MapError, OccupancyMap, load_map
 from services.common.service import ServiceContext
 from services.localization.config import LocalizationConfig
-from services.localization.map_io import MapError, OccupancyMap, load_map
 from services.localization.node import LocalizationNode, Outputs
 from services.localization.odom_history import OdomHistory
 from services.localization.slam.live import LiveMapper

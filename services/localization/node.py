@@ -33,11 +33,11 @@ from proto.messages import (
     Reply,
     Transform2D,
 )
+from services.common.map_io import FREE, MapError, OccupancyMap, load_map
 from services.common.node import Node, TopicPublisher
 from services.common.service import ServiceContext
 from services.localization.amcl import Amcl, select_beams
 from services.localization.config import LocalizationConfig
-from services.localization.map_io import FREE, MapError, OccupancyMap, load_map
 from services.localization.odom_history import OdomHistory
 from services.localization.pose_store import (
     POSE_FILE,

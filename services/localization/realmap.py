@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from services.common.map_io import FREE, OccupancyMap
 from services.common.se2 import compose, wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
-from services.localization.map_io import FREE, OccupancyMap
 from services.localization.synthetic import MOUNT, Odometry, route
 
 Pose = tuple[float, float, float]

@@ -1,23 +1,21 @@
-"""Synthetic runs for AMCL tests and benchmarks: a rectangle world rendered to a grid, an exact laser, a route.
+"""Synthetic runs for AMCL and SLAM tests and benchmarks in the simulator's world model (services.common.world).
 
-A world file (like the corridor world, ``corridor.toml``) is solid except its free rectangles, with obstacle
-rectangles added back. ``render`` rasterises it like a map_server map; ``Laser`` casts rays against the exact
-rectangles (LMS111-like: 270 deg at 0.5 deg, 20 m, Gaussian range noise); ``route`` walks a piecewise-linear path
-through poses in small steps; ``Odometry`` integrates the true body motion with scale errors and noise.
+``Laser`` is an LMS111-like scan (270 deg at 0.5 deg, 20 m, Gaussian range noise) ray-cast in a ``World`` (a
+built-in world such as ``World.load_builtin("corridor")``, or ``World.from_rectangles``; its ``occupancy_map()`` is
+the map AMCL gets); ``route`` walks a piecewise-linear path through poses in small steps; ``Odometry`` integrates
+the true body motion with scale errors and noise; ``drive`` feeds AMCL along a route and records its errors.
 """
 
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from services.common.se2 import compose, wrap_angle
+from services.common.world import World
 from services.localization.amcl import Amcl, AmclParams, select_beams
-from services.localization.map_io import OccupancyMap
 
 #: Table 3 goals joined by via points that keep the straight legs inside free space
 TABLE3_ROUTE = [
@@ -26,41 +24,9 @@ TABLE3_ROUTE = [
 ]
 
 
-@dataclass
-class World:
-    free: np.ndarray        # (k, 4) [xmin, ymin, xmax, ymax]
-    obstacles: np.ndarray   # (j, 4)
-    extent: tuple[float, float, float, float]
-    resolution: float
-
-    @classmethod
-    def load(cls, path: Path) -> World:
-        w = tomllib.loads(path.read_text())
-        extent = w["extent_m"] if "extent_m" in w else w["extent"]  # the simulator's key names, or the plain ones
-        resolution = w["resolution_m"] if "resolution_m" in w else w["resolution"]
-        return cls(np.array(w["free"], dtype=float), np.array(w.get("obstacles", []), dtype=float).reshape(-1, 4),
-                   tuple(extent), float(resolution))
-
-    def is_free(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        x, y = np.asarray(x)[..., None], np.asarray(y)[..., None]
-        f, o = self.free, self.obstacles
-        inside_free = ((x >= f[:, 0]) & (x < f[:, 2]) & (y >= f[:, 1]) & (y < f[:, 3])).any(axis=-1)
-        inside_obstacle = ((x >= o[:, 0]) & (x < o[:, 2]) & (y >= o[:, 1]) & (y < o[:, 3])).any(axis=-1)
-        return np.asarray(inside_free & ~inside_obstacle)
-
-    def render(self) -> OccupancyMap:
-        """The world as a grid: cells whose centre is free are 0, the rest 100; origin at the extent's corner."""
-        x0, y0, x1, y1 = self.extent
-        res = self.resolution
-        cols, rows = round((x1 - x0) / res), round((y1 - y0) / res)
-        cx = x0 + (np.arange(cols) + 0.5) * res
-        cy = y0 + (np.arange(rows) + 0.5) * res
-        free = self.is_free(cx[None, :].repeat(rows, 0), cy[:, None].repeat(cols, 1))
-        return OccupancyMap(np.where(free, 0, 100).astype(np.int8), res, (x0, y0, 0.0))
-
-
 class Laser:
-    """Exact ray casting against the world's rectangles, with Gaussian range noise (m)."""
+    """An LMS111-like laser in a ``World`` (270 deg at 0.5 deg, 20 m by default): the world's ray casting from the
+    laser pose plus Gaussian range noise (m); +inf where nothing is within range."""
 
     def __init__(self, world: World, *, beams: int = 541, fov_rad: float = math.radians(270.0),
                  range_max: float = 20.0, noise_m: float = 0.012, rng: np.random.Generator | None = None) -> None:
@@ -71,27 +37,13 @@ class Laser:
         self.range_min, self.range_max = 0.05, range_max
         self.noise_m = noise_m
         self.rng = rng or np.random.default_rng(7)
-        rects = np.vstack([world.free, world.obstacles])
-        self.xs = np.unique(rects[:, [0, 2]])
-        self.ys = np.unique(rects[:, [1, 3]])
 
     def scan(self, pose: tuple[float, float, float], mount: tuple[float, float, float]) -> np.ndarray:
-        """float32 ranges of one scan from the laser at ``pose`` ∘ ``mount``; +inf where nothing is in range."""
+        """float32 ranges of one scan from the laser at ``pose`` ∘ ``mount``."""
         lx, ly, lth = compose(pose, mount)
-        a = lth + self.angles
-        dx, dy = np.cos(a)[:, None], np.sin(a)[:, None]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tx = (self.xs[None, :] - lx) / dx
-            ty = (self.ys[None, :] - ly) / dy
-        t = np.concatenate([tx, ty], axis=1)
-        t[~np.isfinite(t) | (t <= 1e-9)] = np.inf
-        t.sort(axis=1)
-        probe = t + 1e-6
-        with np.errstate(invalid="ignore"):
-            blocked = ~self.world.is_free(lx + probe * dx, ly + probe * dy) & np.isfinite(t)
-        first = np.where(blocked.any(axis=1), t[np.arange(t.shape[0]), blocked.argmax(axis=1)], np.inf)
+        first = self.world.raycast(lx, ly, lth + self.angles, self.range_max)
         ranges = first + self.rng.normal(0.0, self.noise_m, size=first.shape)
-        ranges[(first > self.range_max) | ~np.isfinite(first)] = np.inf
+        ranges[first >= self.range_max] = np.inf
         return ranges.astype(np.float32)
 
 
@@ -133,18 +85,6 @@ class Odometry:
         self.pose = compose(self.pose, (bx, by, bt))
         self._last_true = true_pose
         return self.pose
-
-
-def find_world(name: str = "corridor") -> Path | None:
-    """The world file ``<name>.toml``: the simulator's package data, else the development data folder."""
-    import os
-
-    root = Path(__file__).resolve().parents[2]
-    shared = Path(os.environ.get("ZAGV_SHARED", root.parent / "shared"))
-    for candidate in (root / "services" / "sim" / "worlds" / f"{name}.toml", shared / "worlds" / f"{name}.toml"):
-        if candidate.is_file():
-            return candidate
-    return None
 
 
 @dataclass

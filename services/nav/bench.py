@@ -107,7 +107,7 @@ class CReference:
 def _largest_map(maps: Path) -> Path | None:
     from PIL import Image
 
-    from services.localization.map_io import read_map_yaml
+    from services.common.map_io import read_map_yaml
 
     best, best_cells = None, 0
     for yaml_path in sorted(maps.glob("*/*.yaml")):

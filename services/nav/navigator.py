@@ -220,14 +220,18 @@ class Navigator:
         return ""
 
     def start_goal(self, now: float, pose: tuple[float, float, float], goal_id: str = "") -> tuple[bool, str, str]:
-        """(accepted, goal id, reason). A new goal preempts the active one."""
+        """(accepted, goal id, reason). A new goal preempts the active one; the active goal sent again (same id and
+        pose: a client's retry after a reply lost or late under load) is accepted as it is, without a restart."""
+        goal_pose = (float(pose[0]), float(pose[1]), float(wrap_angle(pose[2])))
+        if goal_id and self.goal is not None and self.state not in TERMINAL and goal_id == self.goal.id \
+                and goal_pose == self.goal.pose:
+            return True, goal_id, ""
         reason = self.check_goal(pose)
         if reason:
             return False, goal_id, reason
         goal_id = goal_id or f"g{next(self._ids)}"
         if self.goal is not None and self.state not in TERMINAL:
             self.finished.append((self.goal.id, "canceled", "preempted by goal " + goal_id))
-        goal_pose = (float(pose[0]), float(pose[1]), float(wrap_angle(pose[2])))
         self.goal = GoalState(goal_id, goal_pose, now, next(self._seq))
         self.goal.progress_at = now
         self.state = "planning"

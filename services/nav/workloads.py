@@ -117,7 +117,7 @@ def warehouse_costmap(first_seed: int = WAREHOUSE_FIRST_SEED) -> Workload:
 def real_map_workload(yaml_path: str | Path, inscribed_radius_m: float = 0.63, inflation_radius_m: float = 0.645,
                       cost_scaling_factor: float = 10.0) -> Workload:
     """A ROS map inflated like nav's global costmap, corner to corner (module docstring)."""
-    from services.localization.map_io import load_map  # only the bench reads map files
+    from services.common.map_io import load_map  # only the bench reads map files
 
     occ = load_map(yaml_path)
     cm = GlobalCostmap(Costmap2D.empty(1, 1, occ.resolution), StaticLayer(), ObstacleLayer(),

@@ -25,9 +25,9 @@ import numpy as np
 from services.common.bench import BenchRow
 from services.common.ports import free_port
 from services.common.robot import RobotSpec
+from services.common.world import World
 from services.sim.config import SimConfig
 from services.sim.simulation import Simulation
-from services.sim.world import World
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 POSES = [(0.0, 0.0, 0.0), (3.0, 3.2, 0.0), (10.0, 3.2, 0.0), (15.0, 3.0, math.pi), (24.0, 6.5, 0.8),

@@ -22,10 +22,10 @@ import msgspec
 import numpy as np
 
 from services.common.robot import RobotSpec
+from services.common.world import World
 from services.sim.config import SimConfig
 from services.sim.scan_source import Body
 from services.sim.simulation import Frame, Simulation
-from services.sim.world import World
 
 WALL = "wall"
 

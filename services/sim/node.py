@@ -40,12 +40,12 @@ from services.common.clock import SimClock
 from services.common.node import Node, TopicPublisher
 from services.common.robot import RobotSpec
 from services.common.service import ServiceContext
+from services.common.world import World, WorldError, load_world
 from services.sim.config import SimConfig
 from services.sim.fleet import Fleet, start_poses
 from services.sim.lms111 import Lms111Emulator
 from services.sim.pacing import Pacer
 from services.sim.simulation import Simulation
-from services.sim.world import World, WorldError, load_world
 
 __all__ = ["SimConfig", "run"]
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.sim.world import WorldError, builtin_worlds, load_world
+from services.common.world import WorldError, builtin_worlds, load_world
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.common.se2 import compose
+from services.common.world import World
 from services.sim.robot_model import SwerveRobot
-from services.sim.world import World
 
 
 @dataclass

@@ -14,12 +14,12 @@ import numpy as np
 from services.common.motor_units import MotorUnits
 from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
+from services.common.world import World
 from services.sim.config import SimConfig
 from services.sim.razor import RazorImu
 from services.sim.robot_model import SlipModel, SwerveRobot
 from services.sim.roboteq import RoboteqNode, RoboteqSettings
 from services.sim.scan_source import ScanSource
-from services.sim.world import World
 
 Frame = tuple[int, bytes]
 

@@ -17,8 +17,8 @@ import pytest
 
 from proto import codec
 from proto.messages import Twist2D
-from services.cli.stack_process import Stack
 from services.common.robot import RobotSpec
+from services.launch.stack_process import Stack
 from tests.support.waiting import wait_for_sync
 from tests.test_drive_sim import Driver
 

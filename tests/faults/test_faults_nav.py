@@ -33,7 +33,7 @@ from proto.messages import (
     TeleportRequest,
 )
 from proto.registry import TOPICS
-from services.cli.stack_process import Stack
+from services.launch.stack_process import Stack
 from tests.support.waiting import wait_for_sync
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]

@@ -15,8 +15,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.ports import free_port
+from services.launch.stack_process import REPO_ROOT, Stack
 from tests.faults.test_faults_services import Observer
 from tests.support.waiting import wait_for_sync
 

@@ -20,7 +20,7 @@ import pytest
 from proto import codec
 from proto.messages import GroundTruth, Twist2D, WheelStates
 from proto.registry import QUERIES, TOPICS
-from services.cli.stack_process import Stack
+from services.launch.stack_process import Stack
 from tests.faults.tcp_cut import CuttableProxy
 from tests.support.waiting import wait_for_sync
 

@@ -24,10 +24,10 @@ import zenoh
 
 from proto import codec
 from proto.messages import GroundTruth
-from services.cli.stack_process import REPO_ROOT, Stack
 from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from services.launch.stack_process import REPO_ROOT, Stack
 from tests.support.waiting import wait_for_sync
 
 #: what a robot needs to take a goal: no HMI, no recorder, no collision monitor (drive then obeys cmd_vel)

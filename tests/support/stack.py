@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from services.cli.stack_process import Stack
 from services.common.ports import free_port
+from services.launch.stack_process import Stack
 
 __all__ = ["Stack", "free_port", "stack_factory"]
 

@@ -16,8 +16,8 @@ from typing import Any
 import paho.mqtt.client as paho
 import pytest
 
-from services.cli.vda5050_master import MASTER_DIR, MasterProcess, MasterUnavailable, install_master
 from services.common.ports import free_port
+from services.scenario.vda5050_master import MASTER_DIR, MasterProcess, MasterUnavailable, install_master
 from services.vda5050.schemas import validate
 
 
@@ -65,7 +65,7 @@ class Mosquitto:
 
 
 class Master(MasterProcess):
-    """The third-party master control in a node process (``services/cli/vda5050_master.py``); skips the test
+    """The third-party master control in a node process (``services/scenario/vda5050_master.py``); skips the test
     without node/npm."""
 
     def __init__(self, broker_port: int, serial: str | list[str] = "r1", manufacturer: str = "zagv",

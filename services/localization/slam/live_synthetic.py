@@ -1,5 +1,5 @@
-"""Live mapping on the synthetic corridor (exact ray casting, odometry with a scale error): shared by the tests and
-the bench, no I/O beyond reading the world file."""
+"""Live mapping on the synthetic corridor (the built-in corridor world, ray-cast; odometry with a scale error):
+shared by the tests and the bench, no I/O beyond reading the world file."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.localization.synthetic import Laser, Odometry, World, find_world, route
+from services.common.world import World
+from services.localization.synthetic import Laser, Odometry, route
 
 from .live import LiveMapper
 from .mapper import scan_to_points
@@ -36,9 +37,7 @@ def run_corridor(speed_mps: float = 1.0, waypoints: list | None = None, *, beams
                  fov_rad: float = math.pi, render_every_scans: int = 0) -> LiveRun:
     """Drive ``waypoints`` at ``speed_mps`` with a 25 Hz LMS111-like laser (180°, 0.5°) and feed ``LiveMapper``;
     the map is rendered every ``render_every_scans`` scans (0: never) as the service does."""
-    path = find_world("corridor")
-    assert path is not None, "the corridor world is missing"
-    world = World.load(path)
+    world = World.load_builtin("corridor")
     laser = Laser(world, beams=beams, fov_rad=fov_rad, range_max=20.0, rng=np.random.default_rng(3))
     truth = list(route(waypoints or CORRIDOR_ROUTE, step_m=speed_mps * SCAN_PERIOD_S, step_rad=0.04))
     odom = Odometry(truth[0], scale_error=0.01, noise_frac=0.01)

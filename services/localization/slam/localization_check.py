@@ -15,9 +15,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from services.common.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from services.common.se2 import transform_points, wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
-from services.localization.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 from .logs import LaserLog
 from .mapper import scan_to_points

@@ -16,9 +16,9 @@ from pathlib import Path
 
 from proto import codec
 from proto.messages import Clock, Pose2D, Waypoint, WaypointsRequest
-from services.cli.stack_process import Stack
 from services.common.bench import BenchRow
 from services.common.query import query
+from services.launch.stack_process import Stack
 
 #: corridor goals of the paper's Table 3, driven in order while measuring
 CORRIDOR_ROUTE = [(3.0, 0.1, 1.57), (3.0, 3.5, 0.0), (13.6, 3.2, -1.0), (24.4, 3.5, 1.57)]
@@ -72,8 +72,8 @@ def bench_footprint(window_s: float = 60.0) -> list[BenchRow]:
         cores = {s: (cpu_seconds(p) - cpu0[s]) / elapsed for s, p in pids.items()}
         rss = {s: rss_mb(p) for s, p in pids.items()}
     rows = [
-        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.5"),
-        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 600"),
+        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.30"),
+        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 450"),
     ]
     for s in services:
         rows.append(BenchRow(f"stack.{s}.cpu_cores", cores[s], "cores"))

@@ -1,6 +1,6 @@
 """Zenoh transport benchmarks: latency and LaserScan throughput between two services, per topology.
 
-Three processes on loopback: a router (``zagv router``), an echo process (``python -m services.cli.bench_zenoh
+Three processes on loopback: a router (``zagv router``), an echo process (``python -m services.launch.bench_zenoh
 echo``) and the measuring process, in each topology:
 
 - ``zenoh.*`` (what ``zagv up`` runs): the router with the settings ``zagv up`` embeds, both ends with the services'
@@ -102,7 +102,7 @@ class _Peers:
                                        cwd=REPO_ROOT)
         assert self.router.stdout is not None
         self.router.stdout.readline()  # "listening on ..."
-        self.echo = subprocess.Popen([sys.executable, "-m", "services.cli.bench_zenoh", "echo",
+        self.echo = subprocess.Popen([sys.executable, "-m", "services.launch.bench_zenoh", "echo",
                                       msgspec.json.encode(settings).decode()],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, cwd=REPO_ROOT)
         assert self.echo.stdout is not None
@@ -204,7 +204,7 @@ BENCHES = [("zenoh", bench_zenoh)]
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="python -m services.cli.bench_zenoh")
+    parser = argparse.ArgumentParser(prog="python -m services.launch.bench_zenoh")
     parser.add_argument("role", choices=["echo"])
     parser.add_argument("settings", help="the session's ZenohSettings as JSON")
     a = parser.parse_args()

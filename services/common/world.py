@@ -2,7 +2,7 @@
 
 A world is an axis-aligned raster of ``resolution_m`` cells covering ``extent`` = [x_min, y_min, x_max, y_max]
 (map frame, m). Cell (row r, column c) covers x in [x_min + c*res, x_min + (c+1)*res) and likewise y; row 0 is at
-y_min. Cells are solid or free. Built-in worlds (``services/sim/worlds/<name>.toml``) are solid everywhere except
+y_min. Cells are solid or free. Built-in worlds (``services/common/worlds/<name>.toml``) are solid everywhere except
 their ``free`` rectangles, with ``obstacles`` rectangles made solid again and ``glass`` rectangles solid but
 transparent to the lidar (the robot collides with them, the beams pass; the rendered map shows them, as a building
 plan would); any ROS map YAML can be loaded instead (occupied and unknown cells are solid; a yawed origin is
@@ -39,6 +39,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from services.common.grid import axis_aligned
+from services.common.map_io import OccupancyMap
 from services.common.ros_map import write_ros_map
 
 SQRT2 = math.sqrt(2.0)
@@ -305,6 +306,12 @@ class World:
         img = np.where(self.solid, 0, 254).astype(np.uint8)
         return np.ascontiguousarray(img[::-1])
 
+    def occupancy_map(self) -> OccupancyMap:
+        """The raster as an occupancy grid (solid 100, free 0), row 0 at the origin: what map_server would load from
+        ``write_map``'s files."""
+        x0, y0 = self.origin_xy
+        return OccupancyMap(np.where(self.solid, 100, 0).astype(np.int8), self.resolution_m, (x0, y0, 0.0))
+
     def write_map(self, prefix: str | Path) -> tuple[Path, Path]:
         """Write ``prefix.yaml`` + ``prefix.pgm`` in the ROS map_server format; returns both paths."""
         x0, y0 = self.origin_xy
@@ -376,7 +383,7 @@ class World:
         names = builtin_worlds()
         if name not in names:
             raise WorldError(f"no built-in world {name!r}; available: {', '.join(names)}")
-        text = resources.files("services.sim").joinpath("worlds", f"{name}.toml").read_text()
+        text = resources.files("services.common").joinpath("worlds", f"{name}.toml").read_text()
         return cls.from_dict(tomllib.loads(text), f"built-in world {name}")
 
     @classmethod
@@ -420,7 +427,7 @@ class World:
 
 
 def builtin_worlds() -> list[str]:
-    folder = resources.files("services.sim").joinpath("worlds")
+    folder = resources.files("services.common").joinpath("worlds")
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 

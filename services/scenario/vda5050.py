@@ -14,7 +14,7 @@
 
 ``zagv scenario run`` starts one ``zagv up --robots --vda5050`` stack (one vda5050 service per robot, serialNumber =
 robot id, all on one MQTT broker: the embedded one, or ``--mqtt-broker HOST:PORT``) and the third-party master
-control (npm ``vda-5050-lib``'s MasterController, ``services/cli/vda5050_master.py``). Once the master sees every
+control (npm ``vda-5050-lib``'s MasterController, ``services/scenario/vda5050_master.py``). Once the master sees every
 AGV ONLINE with an initialized position at its start, it assigns every robot its order at once: one released node
 per goal, with the goal's position and theta and the allowed deviations above. Nothing coordinates the robots but
 what each sees with its lidar.
@@ -42,9 +42,9 @@ from typing import Any
 from proto import codec
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario_fleet import BLOCKED_GAP_M, closest_approach, merge_contacts
-from services.cli.scenario_model import Scenario, ScenarioRobot, Vda5050Orders
 from services.common.se2 import wrap_angle
+from services.scenario.fleet import BLOCKED_GAP_M, closest_approach, merge_contacts
+from services.scenario.model import Scenario, ScenarioRobot, Vda5050Orders
 
 #: an AGV counts as at its start when its reported position is this close to it (m)
 START_NEAR_M = 0.15
@@ -409,9 +409,9 @@ def parse_broker(text: str) -> tuple[str, int]:
 def run_vda5050_fleet(sc: Scenario, args: argparse.Namespace) -> int:
     """``zagv scenario run`` of a ``[[robots]]`` scenario with ``[vda5050]``: exit 0 only when every order is
     processed without error with every node passed in order and there is no contact."""
-    from services.cli.stack_process import Stack
-    from services.cli.vda5050_master import MasterProcess, MasterUnavailable, install_master
     from services.common.ports import free_port
+    from services.launch.stack_process import Stack
+    from services.scenario.vda5050_master import MasterProcess, MasterUnavailable, install_master
 
     try:
         install_master()

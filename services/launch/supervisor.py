@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from services.cli.common import print_line
+from services.common.logs import print_line
 
 log = logging.getLogger("zagv.supervisor")
 

@@ -65,8 +65,8 @@ def resolve_starts(slots: list[RobotSlot], world: str, map_yaml: str | None, rad
     (``services.sim.fleet.start_poses``: free, spaced, nearest the world's start first)."""
     if all(s.start is not None for s in slots):
         return slots
+    from services.common.world import load_world
     from services.sim.fleet import start_poses
-    from services.sim.world import load_world
 
     w = load_world(world, map_yaml or "")
     given = [s.start for s in slots if s.start is not None]
@@ -78,7 +78,7 @@ def world_robots(world: str, map_yaml: str | None) -> list[tuple[str, tuple[floa
     """A built-in world's ``[[robots]]`` (a ROS map has none)."""
     if map_yaml:
         return []
-    from services.sim.world import load_world
+    from services.common.world import load_world
 
     return load_world(world, "").robots
 

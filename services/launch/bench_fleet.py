@@ -24,10 +24,10 @@ from pathlib import Path
 from proto import codec
 from proto.keys import Keys
 from proto.messages import Clock, Pose2D, Waypoint, WaypointsRequest
-from services.cli.bench_stack import cpu_seconds, rss_mb
-from services.cli.stack_process import Stack
 from services.common.bench import BenchRow
 from services.common.query import QueryError, query
+from services.launch.bench_stack import cpu_seconds, rss_mb
+from services.launch.stack_process import Stack
 
 WORLD = "crossing"
 #: each robot's route: across the hall and back home (the crossing_fleet scenario's goals)

@@ -14,9 +14,9 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario_model import Goal
 from services.common.query import query
 from services.common.se2 import compose
+from services.scenario.model import Goal
 
 
 @dataclass

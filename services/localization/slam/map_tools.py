@@ -5,8 +5,7 @@
 (``stamp_s x_m y_m theta_rad`` per scan). ``zagv map eval LOG RELATIONS [--trajectory FILE] [--json OUT]``
 reports the Kümmerle et al. 2009 relative-pose error of that trajectory (estimated anew unless given), on the
 laser poses (the robot poses composed with the log's laser mount) since the relations relate scans.
-The ``zagv map`` group calls ``add_build_parser`` and ``add_eval_parser``; ``python -m services.cli.map_tools``
-runs the same commands standalone.
+``python -m services.localization.slam`` (which ``zagv map`` runs) calls ``add_build_parser`` and ``add_eval_parser``.
 """
 
 from __future__ import annotations
@@ -144,16 +143,3 @@ def run_eval(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps({**error.as_dict(), **extra}, indent=2))
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="map_tools", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_build_parser(sub)
-    add_eval_parser(sub)
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

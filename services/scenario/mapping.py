@@ -30,7 +30,7 @@ from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
 
 if TYPE_CHECKING:
-    from services.cli.scenario_client import Client
+    from services.scenario.client import Client
 
 Pose = tuple[float, float, float]
 
@@ -155,7 +155,7 @@ class MappingResult:
 def map_agreement(built_yaml: str | Path, truth_yaml: str | Path) -> dict[str, Any]:
     """Occupied-cell F1 of a built map against the ground-truth map (solid = not free, as the simulator treats it):
     the truth's visible wall surface, recall only where the built map saw free space nearby, ±2-cell alignment."""
-    from services.localization.map_io import FREE, load_map
+    from services.common.map_io import FREE, load_map
     from services.localization.slam.map_compare import best_aligned_f1, surface
 
     built, truth = load_map(built_yaml), load_map(truth_yaml)
@@ -169,7 +169,7 @@ def map_agreement(built_yaml: str | Path, truth_yaml: str | Path) -> dict[str, A
 
 def check_route(start: Pose, route: list[Pose], truth_yaml: str | Path, spec: RobotSpec) -> None:
     """RuntimeError naming every leg of the route that does not keep the chassis clear of the ground-truth walls."""
-    from services.localization.map_io import FREE, load_map
+    from services.common.map_io import FREE, load_map
 
     truth = load_map(truth_yaml)
     problems = route_clearance_problems(start, route, truth.data != FREE, truth.resolution, truth.origin[:2],
@@ -299,8 +299,8 @@ class NavMapWatch:
 async def run_mapping(c: Client, start: Pose, route: list[Pose], save_as: str, speed_mps: float,
                       truth_yaml: str | Path, spec: RobotSpec, progress=print) -> MappingResult:
     """The whole phase: check the route, jog it, save the map, score it, navigate on it (module docstring)."""
-    from services.cli.scenario_client import wait_until
-    from services.localization.map_io import load_map
+    from services.common.map_io import load_map
+    from services.scenario.client import wait_until
 
     check_route(start, route, truth_yaml, spec)
     await wait_until(lambda: c.map_odom is not None, "localization (mapping) published no tf/map_odom", 90.0)

@@ -37,10 +37,11 @@ from pathlib import Path
 
 from proto import messages as m
 from proto.keys import Keys
-from services.cli.scenario import format_table, leg_totals, place_robot, run_goal, summarize
-from services.cli.scenario_client import Client
-from services.cli.scenario_model import Scenario, ScenarioRobot
 from services.common.query import QueryError
+from services.scenario.client import Client
+from services.scenario.model import Scenario, ScenarioRobot
+from services.scenario.report import format_table, leg_totals, summarize
+from services.scenario.runner import place_robot, run_goal
 
 #: a goal that ends unreached with another chassis this close (m, edge to edge) was blocked by that robot
 BLOCKED_GAP_M = 1.5
@@ -223,7 +224,7 @@ def format_fleet(result: FleetResult) -> str:
 def run_fleet(sc: Scenario, args: argparse.Namespace) -> int:
     """``zagv scenario run`` of a scenario with ``[[robots]]``: exit 0 only when every goal is reached with no
     contact."""
-    from services.cli.stack_process import Stack
+    from services.launch.stack_process import Stack
 
     run_dir = Path(args.run_dir or tempfile.mkdtemp(prefix="zagv-scenario-"))
     run_dir.mkdir(parents=True, exist_ok=True)

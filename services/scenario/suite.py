@@ -1,9 +1,9 @@
 """``zagv scenario suite [SUITE.toml] --maps-dir DIR``: the robustness benchmark over many maps.
 
 For every map of the suite file and every seed, ``zagv scenario generate`` draws a scenario of reachable goals
-(services/cli/scenario_generate.py); one simulated stack per map then drives the goals of each seed in turn (the
+(services/scenario/generate.py); one simulated stack per map then drives the goals of each seed in turn (the
 robot teleported to that seed's start). Every goal is judged by the ground truth against the goal tolerance
-(services/cli/scenario.py). The table has one row per map: goals, reached, what nav claimed and how often it
+(services/scenario/runner.py). The table has one row per map: goals, reached, what nav claimed and how often it
 claimed success outside the tolerance, collisions, recoveries, max and RMS localization error, time per metre.
 
 Suite TOML::
@@ -34,8 +34,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from services.cli.scenario import leg_totals, load_scenario, run_scenario
-from services.cli.scenario_generate import GenerateError, generate_file, map_label
+from services.scenario.generate import GenerateError, generate_file, map_label
+from services.scenario.model import load_scenario
+from services.scenario.report import leg_totals
+from services.scenario.runner import run_scenario
 
 
 @dataclass
@@ -78,7 +80,7 @@ def load_suite(path: Path, maps_dir: Path | None) -> tuple[Suite, list[str]]:
 def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float, extra_set: list[str],
             max_leg_m: float = 20.0) -> dict:
     """Generate and drive every seed's goals on one map; the map's row with its runs."""
-    from services.cli.stack_process import Stack
+    from services.launch.stack_process import Stack
 
     row: dict = {"map": entry.name, "runs": [], "note": ""}
     files = []
@@ -157,23 +159,6 @@ def bench_rows(rows: list[dict], runs: list[dict]) -> list[dict]:
         {"name": "scenario.suite_loc_error_rms_m", "value": t["loc_error_rms_m"], "unit": "m", "goal": ""},
         {"name": "nav.time_per_metre_s", "value": t["time_per_metre_s"], "unit": "s/m", "goal": "-> 5 (0.2 m/s)"},
     ]
-
-
-def add_parser(ssub: argparse._SubParsersAction) -> None:
-    sp = ssub.add_parser("suite", help="the robustness benchmark: generated goals on many maps, one table")
-    sp.add_argument("file", nargs="?", default="scenarios/suite.toml", help="suite TOML (default %(default)s)")
-    sp.add_argument("--maps-dir", help="folder the suite's map paths are relative to")
-    sp.add_argument("--only", help="comma-separated map names to run")
-    sp.add_argument("--seeds", help="comma-separated seeds (override the file)")
-    sp.add_argument("--goals", type=int, help="goals per seed and map (override the file)")
-    sp.add_argument("--speed", type=float, help="sim speed factor (override the file)")
-    sp.add_argument("--max-leg", type=float, default=20.0,
-                    help="m in a straight line between consecutive goals at most (default %(default)s)")
-    sp.add_argument("--goal-timeout", type=float, default=600.0, help="sim seconds per goal (default %(default)s)")
-    sp.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE", help="stack config override")
-    sp.add_argument("--json", help="write the rows, bench rows and every goal's result to this file")
-    sp.add_argument("--run-dir", help="folder for generated scenarios and stack logs (default: temporary)")
-    sp.set_defaults(func=run_suite)
 
 
 def run_suite(args: argparse.Namespace) -> int:

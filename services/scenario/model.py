@@ -1,5 +1,5 @@
 """A scenario file (TOML) as data: the world or map, start, repeats, speed, goals, dynamic obstacles and the optional
-mapping phase; ``load_scenario`` checks it and names what is wrong (services/cli/scenario.py documents the format)."""
+mapping phase; ``load_scenario`` checks it and names what is wrong (the format: services/scenario/runner.py)."""
 
 from __future__ import annotations
 
@@ -49,10 +49,10 @@ class Scenario:
     dynamic_obstacles: list[DynamicObstacle] = field(default_factory=list)
     name: str = "scenario"
     mapping: Mapping | None = None
-    #: several robots in one world, each with its own start and goals (services/cli/scenario_fleet.py)
+    #: several robots in one world, each with its own start and goals (services/scenario/fleet.py)
     robots: list[ScenarioRobot] = field(default_factory=list)
     #: the ``[vda5050]`` table: the robots' goals become VDA 5050 orders of a master control
-    #: (services/cli/scenario_vda5050.py)
+    #: (services/scenario/vda5050.py)
     vda5050: Vda5050Orders | None = None
 
 

@@ -1,7 +1,7 @@
 """``zagv scenario generate MAP.yaml --goals N --seed S [--out FILE]``: a scenario of reachable goals on any map.
 
 The map is read as the simulator reads it (occupied, unknown and in-between cells are solid, a yawed origin is
-resampled; services.sim.world), so the goals are judged against the world the robot will actually drive in.
+resampled; services.common.world), so the goals are judged against the world the robot will actually drive in.
 
 Clearance: ``d`` = Euclidean distance (m) from a cell centre to the nearest solid cell centre (cells outside the
 map are solid). A cell is *drivable* when ``d >= robot_radius_m + corridor_margin_m`` (default 0.63 + 0.15 m: the
@@ -139,7 +139,7 @@ def generate_goals(space: FreeSpace, n_goals: int, seed: int, start: tuple[float
 
 def scenario_toml(name: str, source: str, start: tuple[float, float, float], goals: list[tuple[float, float, float]],
                   speed: float, description: str) -> str:
-    """The scenario file (services/cli/scenario.py format); ``source`` is a ``map = ...`` or ``world = ...`` line."""
+    """The scenario file (services/scenario/runner.py format); ``source`` is a ``map = ...`` or ``world = ...`` line."""
     lines = [f"# {description}", f'name = "{name}"', source, f"start = [{start[0]}, {start[1]}, {start[2]}]",
              "repeats = 1", f"speed = {speed:g}", ""]
     for k, g in enumerate(goals, 1):
@@ -171,7 +171,7 @@ def generate_fleet(space: FreeSpace, n_robots: int, n_goals: int, seed: int,
 def fleet_scenario_toml(name: str, source: str, robots: list[tuple[tuple[float, float, float],
                                                                     list[tuple[float, float, float]]]],
                         speed: float, description: str) -> str:
-    """A ``[[robots]]`` scenario (services/cli/scenario_fleet.py): ids r1, r2, ..."""
+    """A ``[[robots]]`` scenario (services/scenario/fleet.py): ids r1, r2, ..."""
     lines = [f"# {description}", f'name = "{name}"', source, f"speed = {speed:g}", ""]
     for k, (start, goals) in enumerate(robots, 1):
         lines += ["[[robots]]", f'id = "r{k}"', f"start = [{start[0]}, {start[1]}, {start[2]}]"]
@@ -189,7 +189,7 @@ def map_label(map_yaml: str) -> str:
 
 def load_solid(map_yaml: str | None, world: str | None):
     """The simulator's world for a map YAML or a built-in world name."""
-    from services.sim.world import load_world
+    from services.common.world import load_world
 
     return load_world(world or "", map_yaml or "")
 
@@ -235,29 +235,8 @@ def generate_file(out: Path, *, map_yaml: str | None = None, world: str | None =
     return out
 
 
-def add_parser(ssub: argparse._SubParsersAction) -> None:
-    gp = ssub.add_parser("generate", help="write a scenario of reachable goals on a map or built-in world")
-    gp.add_argument("map", nargs="?", help="ROS map YAML (or give --world)")
-    gp.add_argument("--world", help="built-in sim world instead of a map")
-    gp.add_argument("--goals", type=int, required=True, help="number of goals")
-    gp.add_argument("--seed", type=int, default=1)
-    gp.add_argument("--start", help="start pose x,y,theta (default: drawn from the largest drivable region)")
-    gp.add_argument("--out", help="scenario TOML to write (default: <map name>_s<seed>.toml here)")
-    gp.add_argument("--robot-radius", type=float, default=DEFAULT_ROBOT_RADIUS_M, help="m (default %(default)s)")
-    gp.add_argument("--corridor-margin", type=float, default=DEFAULT_CORRIDOR_MARGIN_M,
-                    help="clearance beyond the radius for the connecting free space, m (default %(default)s)")
-    gp.add_argument("--goal-margin", type=float, default=DEFAULT_GOAL_MARGIN_M,
-                    help="clearance beyond the radius at each goal, m (default %(default)s)")
-    gp.add_argument("--min-leg", type=float, default=3.0, help="m between consecutive goals (default %(default)s)")
-    gp.add_argument("--max-leg", type=float, default=20.0, help="m between consecutive goals (default %(default)s)")
-    gp.add_argument("--speed", type=float, default=4.0, help="sim speed factor written to the file")
-    gp.add_argument("--robots", type=int, default=1, help="robots (> 1: a [[robots]] scenario, ids r1..rN, --goals "
-                    "each, starts and goals 2 x radius + 0.6 m apart; default %(default)s)")
-    gp.set_defaults(func=run_generate)
-
-
 def run_generate(args: argparse.Namespace) -> int:
-    from services.sim.world import WorldError
+    from services.common.world import WorldError
 
     if bool(args.map) == bool(args.world):
         print("zagv scenario generate: give a map YAML or --world NAME (one of them)", file=sys.stderr)

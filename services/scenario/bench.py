@@ -1,4 +1,4 @@
-"""Navigation robustness rows for ``zagv bench``: a slice of the robustness suite (services/cli/scenario_suite.py).
+"""Navigation robustness rows for ``zagv bench``: a slice of the robustness suite (services/scenario/suite.py).
 
 ``zagv bench --only scenario`` drives 3 generated goals (seed 1) in each of the built-in site-like worlds (warehouse
 aisles, office with glass, cluttered hall) and reports the suite summary (``scenario.suite_*``) and
@@ -19,7 +19,7 @@ SUITE = Path(__file__).resolve().parents[2] / "scenarios" / "suite.toml"
 
 
 def bench_suite_slice() -> list[BenchRow]:
-    from services.cli.scenario_suite import run_suite
+    from services.scenario.suite import run_suite
 
     with tempfile.TemporaryDirectory(prefix="zagv-bench-suite-") as tmp:
         out = Path(tmp) / "suite.json"
