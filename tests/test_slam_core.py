@@ -175,3 +175,14 @@ def test_parse_carmen_flaser_and_robotlaser():
     np.testing.assert_allclose(log.sensor_pose, [0.2, 0.0, 0.0], atol=1e-5)  # robot⁻¹ ⊕ laser of ROBOTLASER1
     with pytest.raises(ValueError, match="line 1: malformed FLASER"):
         parse_carmen(["FLASER 5 1.0 2.0"])
+
+
+@pytest.mark.parametrize(("n_beams", "step_deg"), [(181, 1.0), (180, 1.0), (361, 0.5), (360, 0.5), (401, 0.25)])
+def test_flaser_beam_spacing_follows_the_sick_modes(n_beams, step_deg):
+    """CARMEN's FLASER: 180 and 360 beams are the 1° and 0.5° modes without their last beam (ending at +89° and
+    +89.5°), not 180° spread over one beam fewer (which bends every wall by up to half a step at the edges)."""
+    line = f"FLASER {n_beams} {' '.join(['2.0'] * n_beams)} 0 0 0 0 0 0 5.0 host 5.0"
+    angles = parse_carmen([line]).scans[0].angles_rad
+    np.testing.assert_allclose(np.diff(angles), np.radians(step_deg))
+    assert angles[0] == pytest.approx(-np.pi / 2)
+    assert angles[-1] == pytest.approx(-np.pi / 2 + (n_beams - 1) * np.radians(step_deg))

@@ -1,8 +1,10 @@
 """Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs and ROS 1 ``.bag`` files.
 
 CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
-(beams spread evenly over 180°, starting at -90°; the laser sits ``PARAM robot_frontlaser_offset`` m ahead of the
-robot, 0 when absent) and ``ROBOTLASER1 type start_angle fov resolution max_range
+(beams from -90° at CARMEN's ``carmen_laser_get_angle_increment``: 1° for 180 and 181 beams, 0.5° for 360 and 361,
+0.25° for 400 and 401, else spread evenly over 180°; a 180- or 360-beam scan thus ends one step short of +90°; the
+laser sits ``PARAM robot_frontlaser_offset`` m ahead of the robot, 0 when absent) and
+``ROBOTLASER1 type start_angle fov resolution max_range
 accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
 tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp`` (the mount is
 ``robot_pose⁻¹ ⊕ laser_pose``); the stamp is the IPC timestamp. CARMEN records stay in file order (the logger
@@ -53,6 +55,15 @@ class LaserLog:
         return self.scans[-1].stamp_s - self.scans[0].stamp_s if self.scans else 0.0
 
 
+def flaser_angle_increment_rad(n_beams: int) -> float:
+    """Beam spacing of an n-beam FLASER scan, as CARMEN's ``carmen_laser_get_angle_increment`` defines it (the
+    SICK LMS modes: 1°, 0.5°, 0.25°; an even count is the odd one without its last beam)."""
+    for full, step_deg in ((181, 1.0), (361, 0.5), (401, 0.25)):
+        if n_beams in (full, full - 1):
+            return float(np.radians(step_deg))
+    return float(np.pi / max(n_beams - 1, 1))
+
+
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
     """Scans of the FLASER / ROBOTLASER1 lines of a CARMEN log (other lines are ignored)."""
     scans: list[LaserScanRecord] = []
@@ -71,7 +82,7 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 rest = fields[2 + n:]
                 odom = np.array(rest[3:6], float)
                 stamp = float(rest[6])
-                angles = -np.pi / 2 + np.arange(n) * (np.pi / max(n - 1, 1))
+                angles = -np.pi / 2 + np.arange(n) * flaser_angle_increment_rad(n)
                 scans.append(LaserScanRecord(stamp, ranges, angles, odom))
             elif fields[0] == "ROBOTLASER1":
                 start, fov, max_range = float(fields[2]), float(fields[3]), float(fields[5])

@@ -6,10 +6,14 @@ correlative search over a window scaled to the odometry increment (x, y: ``rescu
 rescue_window_per_m·‖Δt‖``; θ: ``rescue_window_theta_rad + 0.5·|Δθ| + rescue_theta_per_m·‖Δt‖``; its candidates
 are refined under an odometry prior of spread σ = σ₀ + k·‖Δt‖), so a wheel slip or an odometry jump is searched
 for, not trusted. A match whose score stays below ``min_match_score`` fails the quality gate: below
-``weak_match_score`` the pose falls back to the odometry prediction, and in both cases the keyframe edge gets the
+``weak_match_score``, or when a weak match lies more than ``weak_match_max_sigma`` standard deviations of the odometry
+prediction away (Mahalanobis distance under the motion prior: a similar-looking place, not a wheel slip), the pose
+falls back to the odometry prediction, and in both cases the keyframe edge gets the
 odometry's covariance (σ_xy = ``fallback_sigma_xy_m + odom_sigma_xy_per_m·d``, σ_θ = ``fallback_sigma_theta_rad +
 odom_sigma_theta_per_m·d`` over the unmatched distance d) instead of a scan match's, so the back end knows that
-stretch is only dead-reckoned.
+stretch is only dead-reckoned. A good match that the odometry prior holds more than ``odometry_outlier_sigma`` σ
+(motion prior) from the prediction marks the odometry step an outlier (a slip or jump the prior would partly keep):
+the scan is refined alone from there and wins when it scores no worse and fixes both translation directions.
 
 Every match is then made degeneracy-aware (``constraint.py``): from the shape of its Gauss-Newton Hessian, the
 translation directions the scan barely fixes (a corridor's axis: eigenvalue ratio below ``degenerate_ratio_strong``,
@@ -70,6 +74,10 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     match_visibility_margin_m: float = 0.0
     min_match_score: float = 0.35
     weak_match_score: float = 0.175
+    #: a weak match further than this many σ of the odometry prediction (motion prior) falls back to odometry
+    weak_match_max_sigma: float = 3.0
+    #: a good match held further than this many σ from the odometry prediction marks the odometry step an outlier
+    odometry_outlier_sigma: float = 4.0
     odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
     rescue_below_score: float = 0.35
@@ -186,6 +194,7 @@ class GraphSlam:
         self.rescued_matches = 0
         self.fallback_matches = 0
         self.weak_matches = 0
+        self.odometry_outliers = 0
         self.last_match_ok = True
         self.last_constraint: MatchConstraint = FULLY_CONSTRAINED
         self.degenerate_matches = 0
@@ -273,7 +282,8 @@ class GraphSlam:
         points = self._seen_points(points, predicted)
         result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
         if result.score >= max(c.min_match_score, c.rescue_below_score) and abs(turn_rad) < c.fast_turn_rad:
-            return self._constrained(result, predicted, points), True
+            return self._constrained(self._unless_odometry_outlier(result, points, predicted, step), predicted,
+                                     points), True
         # poor match or fast turn (where odometry and Gauss-Newton are least reliable): search a window scaled to
         # the odometry increment; candidates are refined with a prior whose spread grows with the increment, so
         # a large (possibly wrong) odometry step cannot pull the match back
@@ -291,11 +301,41 @@ class GraphSlam:
             if best is not result:
                 self.rescued_matches += 1
             return self._constrained(best, predicted, points), True
-        if best.score >= c.weak_match_score:  # weak but usable: kept, with the odometry's covariance
-            self.weak_matches += 1
+        # a weak match far from the odometry is more likely a similar-looking place than an odometry error
+        if best.score >= c.weak_match_score and self._within_odometry(best.pose, predicted, step,
+                                                                     c.weak_match_max_sigma):
+            self.weak_matches += 1  # weak but usable: kept, with the odometry's covariance
             return self._constrained(best, predicted, points), False
         self.fallback_matches += 1
         return predicted, False
+
+    def _unless_odometry_outlier(self, result: MatchResult, points: np.ndarray, predicted: np.ndarray,
+                                 step: np.ndarray) -> MatchResult:
+        """A good match that the odometry prior holds more than ``odometry_outlier_sigma`` σ away from the
+        prediction (motion prior, as ``_within_odometry``) is in tension with it: the odometry step is an outlier
+        (a wheel slip, a jump), and a prior of the normal spread would leave part of it in the pose. The scan is
+        then refined alone from there and its pose kept when it scores no worse and fixes every translation
+        direction (where it does not, the prior stays in charge)."""
+        assert self._submap is not None
+        if self._within_odometry(result.pose, predicted, step, self.config.odometry_outlier_sigma):
+            return result
+        free = refine(self._submap, points, result.pose)
+        if free.score < result.score:
+            return result
+        curvature = translation_curvature(self._submap.levels[0], points, free.pose)
+        constraint = match_constraint(curvature, ratio_weak=self.config.degenerate_ratio_weak,
+                                      ratio_strong=self.config.degenerate_ratio_strong)
+        if constraint.degenerate:
+            return result
+        self.odometry_outliers += 1
+        return free
+
+    def _within_odometry(self, pose: np.ndarray, predicted: np.ndarray, step: np.ndarray, sigmas: float) -> bool:
+        """Whether ``pose`` lies within ``sigmas`` standard deviations of the odometry prediction (Mahalanobis
+        distance d² = δᵀ Λ δ under the motion prior Λ of ``step``)."""
+        delta = np.asarray(pose, float) - predicted
+        delta[2] = wrap_angle(delta[2])
+        return float(delta @ self._motion_prior(step) @ delta) <= sigmas**2
 
     def _seen_points(self, points: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """The scan points (placed at the prediction) that the submap's keyframes have looked at
