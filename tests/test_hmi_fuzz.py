@@ -134,7 +134,7 @@ def run_fuzz(stack, *, allow_unavailable: bool) -> None:
 
 
 def test_fuzz_openapi_finds_no_server_error(tmp_path):
-    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.1"])
+    stack = hmi_stack(tmp_path, sets=["hmi_api.query_timeout_s=0.1", "hmi_api.blackbox_save_timeout_s=0.1"])
     try:
         stack.start()
         run_fuzz(stack, allow_unavailable=True)

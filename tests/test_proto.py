@@ -27,6 +27,8 @@ EXAMPLES: dict[type, m.Message] = {
     m.TeleportRequest: m.TeleportRequest(pose=P),
     m.LocalizationUpdate: m.LocalizationUpdate(ok=True, message="updated", pose=m.PoseWithCovariance(pose=P),
                                                map_odom=m.Transform2D(x=0.1, theta=0.02)),
+    m.ServiceEvent: m.ServiceEvent(stamp=12.5, event="response_sent", sequence=3, response=b"\x81",
+                                   input_topic="scan", input_stamp=12.4),
 }
 
 

@@ -187,14 +187,15 @@ class Backend:
 
     # ------------------------------------------------------------------ robot actions
 
-    async def query(self, name: str, request: Any) -> Any:
+    async def query(self, name: str, request: Any, timeout_s: float | None = None) -> Any:
+        """``name`` asked within ``timeout_s`` (default ``query_timeout_s``); RobotUnavailable when unanswered."""
         try:
-            return await self.node.query(name, request, timeout_s=self.config.query_timeout_s)
+            return await self.node.query(name, request, timeout_s=timeout_s or self.config.query_timeout_s)
         except QueryError as exc:
             raise RobotUnavailable(f"{name}: {exc}") from None
 
-    async def reply_query(self, name: str, request: Any = None) -> Reply:
-        reply: Reply = await self.query(name, request if request is not None else Empty())
+    async def reply_query(self, name: str, request: Any = None, timeout_s: float | None = None) -> Reply:
+        reply: Reply = await self.query(name, request if request is not None else Empty(), timeout_s)
         if not reply.ok:
             raise RobotRejected(f"{name} refused: {reply.message or 'no reason given'}")
         return reply

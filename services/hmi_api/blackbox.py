@@ -68,7 +68,9 @@ async def blackbox_download(request: Request, name: str) -> Response[bytes]:
 
 @post("/blackbox/save", status_code=HTTP_200_OK, summary="Save the black box now (the last minutes of every topic)")
 async def blackbox_save(request: Request) -> BlackBoxSaved:
-    reply = await request.app.state.backend.reply_query("recorder/save", BlackBoxSaveRequest(reason="hmi"))
+    backend = request.app.state.backend  # writing minutes of every topic takes seconds: its own deadline
+    reply = await backend.reply_query("recorder/save", BlackBoxSaveRequest(reason="hmi"),
+                                      timeout_s=backend.config.blackbox_save_timeout_s)
     return BlackBoxSaved(ok=True, message=reply.message)
 
 

@@ -32,6 +32,8 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
     scan_max_points: int = 720
     particles_max: int = 1000
     query_timeout_s: float = 3.0
+    #: how long ``POST /api/blackbox/save`` waits for the recorder to have written the bag
+    blackbox_save_timeout_s: float = 30.0
     #: wrong passwords a client may send before it is locked out (1 s, doubling up to login_lockout_max_s)
     login_free_attempts: int = 5
     login_lockout_initial_s: float = 1.0
@@ -49,8 +51,8 @@ class HmiApiConfig(msgspec.Struct, forbid_unknown_fields=True):
                          tls_certificate=self.tls_certificate, tls_private_key=self.tls_private_key,
                          positive={name: getattr(self, name) for name in (
                              "jog_timeout_s", "jog_rate_hz", "ws_rate_hz", "velocity_record_hz", "token_ttl_s",
-                             "velocity_history_s", "query_timeout_s", "login_lockout_initial_s",
-                             "login_lockout_max_s")})
+                             "velocity_history_s", "query_timeout_s", "blackbox_save_timeout_s",
+                             "login_lockout_initial_s", "login_lockout_max_s")})
         if self.login_free_attempts < 1 or self.max_poses < 1:
             raise ValueError("hmi_api.login_free_attempts and hmi_api.max_poses must be >= 1")
 
