@@ -155,10 +155,11 @@ def judge_leg(result: dict, state: str, nav_error: str, leg: Leg, collisions: in
 
 
 
-def unsent_goal_result(goal: Goal, why: str) -> dict:
-    """The result of a goal whose request nav never answered."""
+def unreached_goal_result(goal: Goal, claimed: str, why: str) -> dict:
+    """The result of a goal not (yet) reached: ``claimed`` says what became of it ("rejected", "not sent", "not
+    run"), ``why`` is nav's or the runner's reason."""
     return {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3, "error": [None] * 3,
-            "time_s": 0.0, "claimed": "not sent", "nav_error": why, "recoveries": 0, "collisions": 0,
+            "time_s": 0.0, "claimed": claimed, "nav_error": why, "recoveries": 0, "collisions": 0,
             "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
 
 
@@ -186,9 +187,7 @@ async def run_goal(c: Client, sc: Scenario, run: int, index: int, goal: Goal, ti
         reply = await c.query("nav/goal", req, timeout_s=ATTEMPT_TIMEOUT_S)
     t0 = c.sim_time
     collisions_before = c.collisions
-    result: dict[str, Any] = {"id": goal.id, "target": list(goal.pose), "reached": False, "final": [None] * 3,
-              "error": [None] * 3, "time_s": 0.0, "claimed": "rejected", "nav_error": reply.reason,
-              "recoveries": 0, "collisions": 0, "driven_m": 0.0, "loc_error_max_m": None, "loc_error_rms_m": None}
+    result: dict[str, Any] = unreached_goal_result(goal, "rejected", reply.reason)
     if not reply.accepted:
         print(f"scenario: run {run} goal {goal.id} rejected: {reply.reason}", flush=True)
         c.leg = None
@@ -295,7 +294,7 @@ async def run_scenario(sc: Scenario, session, keys: Keys, *, goal_timeout_s: flo
                                          sc.mapping.map_error_allowance_m if sc.mapping is not None else 0.0)
                 except QueryError as exc:  # this goal never reached nav: it counts as not reached, the run goes on
                     c.leg = None
-                    res = unsent_goal_result(goal, str(exc))
+                    res = unreached_goal_result(goal, "not sent", str(exc))
                 goals.append(res)
                 err = ", ".join(f"{v:+.3f}" if v is not None else "-" for v in res["error"])
                 loc = ", ".join(f"{v:+.3f}" for v in c.localization_errors[-1]) if c.localization_errors else "-"

@@ -37,7 +37,7 @@ from typing import Any
 from services.scenario.generate import GenerateError, generate_file, map_label
 from services.scenario.model import load_scenario
 from services.scenario.report import leg_totals
-from services.scenario.runner import run_scenario
+from services.scenario.runner import run_scenario, unreached_goal_result
 
 
 @dataclass
@@ -114,9 +114,7 @@ def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float,
             except (AssertionError, RuntimeError) as exc:  # that seed stopped; its goals count as not reached
                 row["note"] += f"seed {seed} stopped: {exc}; "
                 runs = [{"run": 1, "goals": [
-                    {"id": g.id, "target": list(g.pose), "reached": False, "claimed": "not run", "final": [None] * 3,
-                     "error": [None] * 3, "time_s": 0.0, "recoveries": 0, "collisions": 0, "driven_m": 0.0,
-                     "loc_error_max_m": None, "loc_error_rms_m": None, "nav_error": str(exc)} for g in sc.goals]}]
+                    unreached_goal_result(g, "not run", str(exc)) for g in sc.goals]}]
             for r in runs:
                 r["seed"] = seed
             row["runs"].extend(runs)
