@@ -17,7 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from proto import codec
 from proto import messages as m
-from services.cli.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
+from services.launch.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
 from services.recorder.rosconv import quat_to_yaw
 
 # a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores

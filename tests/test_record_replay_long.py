@@ -18,7 +18,9 @@ import zenoh
 
 from proto import codec
 from proto import messages as m
-from services.cli.bench_record import (
+from services.common.node import query
+from services.common.se2 import compose
+from services.launch.bench_record import (
     _env,
     bag_mb,
     record_corridor,
@@ -26,8 +28,6 @@ from services.cli.bench_record import (
     replay_speed_factor,
     trajectory_rms_m,
 )
-from services.common.node import query
-from services.common.se2 import compose
 from services.launch.stack_process import REPO_ROOT, Stack
 from tests.support.waiting import wait_for_sync
 from tests.test_record_replay import check_bag_matches_published

@@ -200,7 +200,7 @@ class _FakeMonotonic:
 
 def test_record_time_base_waits_from_the_subscriptions(monkeypatch: pytest.MonkeyPatch) -> None:
     """A slow session start does not count against the wait for the first clock; without a clock, wall time."""
-    from services.cli import record
+    from services.recorder import record
 
     fake = _FakeMonotonic()
     monkeypatch.setattr(record.time, "monotonic", fake)

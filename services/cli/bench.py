@@ -20,10 +20,9 @@ from services.common.bench import BenchRow
 
 def discover() -> list[tuple[str, Callable[[], list[BenchRow]]]]:
     """Every (group, function) pair, cheapest first as each module lists them."""
-    from services.cli import bench_record
     from services.drive import bench as drive_bench
     from services.hmi_api import bench as hmi_api_bench
-    from services.launch import bench_fleet, bench_stack, bench_zenoh
+    from services.launch import bench_fleet, bench_record, bench_stack, bench_zenoh
     from services.lidar import bench as lidar_bench
     from services.localization import bench as localization_bench
     from services.localization.slam import bench_fr079 as bench_slam

@@ -16,8 +16,13 @@ def add_client_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robot-id", default=DEFAULT_ROBOT_ID, help="robot id (default %(default)s)")
 
 
+def client_settings(args: argparse.Namespace) -> ZenohSettings:
+    """A client of ``--connect`` (default the local router); multicast scouting is off in every session."""
+    return ZenohSettings(mode="client", connect=args.connect or [DEFAULT_ROUTER])
+
+
 def client_session(args: argparse.Namespace):  # zenoh.Session
-    return open_session(ZenohSettings(mode="client", connect=args.connect or [DEFAULT_ROUTER]))
+    return open_session(client_settings(args))
 
 
 def client_keys(args: argparse.Namespace) -> Keys:

@@ -1,27 +1,12 @@
-"""``zagv record [-o DIR] [KEY ...]``: record the robot's topics as a rosbag2 folder with MCAP storage.
-
-Standard ROS 2 types where one exists, ``zagv_msgs/msg/Message`` for the rest (``services/recorder/rosconv.py``).
-Log times follow the robot's clock: the ``clock`` topic's time once one arrives (simulation), else wall time.
-The latched ``map`` is fetched once at start. Prints a progress line (messages, MB, rate) once a second.
-"""
+"""``zagv record [-o DIR] [KEY ...]``: the arguments; recording is services.recorder.record."""
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import queue
-import sys
-import time
-from datetime import datetime
-from pathlib import Path
 
-import zenoh
-
-from proto import codec
 from proto.keys import split_key
-from proto.messages import Clock
 from proto.registry import TOPICS
-from services.cli.common import add_client_options, client_keys, client_session
+from services.cli.common import add_client_options, client_keys, client_settings
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -34,53 +19,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, default=0.0, help="stop after S s of log time (0: until Ctrl-C)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.set_defaults(func=run_record)
-
-
-class LogClock:
-    """The robot's time for log stamps: the last ``clock`` message's stamp once one arrived, else wall time.
-
-    The time base is chosen once: the clock's when a ``clock`` message comes within ``WAIT_S`` of the start (messages
-    that arrived before it, such as the latched map, get its time), else wall time for the whole recording, so a bag
-    never mixes the two. The start is when the subscriptions exist (``subscribed``): opening the session can take
-    longer than ``WAIT_S`` on a loaded machine, which then recorded a simulated run on wall time."""
-
-    WAIT_S = 2.0
-
-    def __init__(self) -> None:
-        self.sim_s: float | None = None
-        self.first_sim_s: float | None = None
-        self.sim_base: bool | None = None
-        self.started: float | None = None  # set by ``subscribed``
-
-    def subscribed(self) -> None:
-        """The subscriptions exist: the wait for a first ``clock`` starts now."""
-        self.started = time.monotonic()
-
-    def on_clock(self, msg: Clock) -> None:
-        if self.sim_s is None or msg.stamp >= self.sim_s or msg.stamp < self.sim_s - 1.0:
-            self.sim_s = msg.stamp
-            if self.first_sim_s is None:
-                self.first_sim_s = msg.stamp
-                self.sim_base = self.started is None or time.monotonic() - self.started <= self.WAIT_S
-
-    def arrival(self) -> tuple[int | None, int]:
-        """(sim ns or None, wall ns) of a message arriving now."""
-        return (None if self.sim_s is None else int(round(self.sim_s * 1e9))), time.time_ns()
-
-    def decide_now(self) -> None:
-        """No more waiting: wall time unless a clock came."""
-        if self.sim_base is None:
-            self.sim_base = False
-
-    def log_ns(self, sim_ns: int | None, wall_ns: int) -> int | None:
-        """The log time of a message that arrived at (sim_ns, wall_ns); None: not decided yet (wait)."""
-        if self.sim_base is None and self.started is not None and time.monotonic() - self.started >= self.WAIT_S:
-            self.sim_base = False
-        if self.sim_base is None:
-            return None
-        if not self.sim_base:
-            return wall_ns
-        return sim_ns if sim_ns is not None else int(round((self.first_sim_s or 0.0) * 1e9))
 
 
 def selected_names(keys: list[str]) -> list[str] | None:
@@ -97,87 +35,8 @@ def selected_names(keys: list[str]) -> list[str] | None:
 
 
 def run_record(args: argparse.Namespace) -> int:
-    from services.recorder.bag import BagRecorder
+    from services.recorder.record import record
 
-    keys = client_keys(args)
     names = selected_names(args.keys)
-    out = Path(args.output or datetime.now().strftime("zagv_%Y%m%d_%H%M%S"))
-    try:
-        recorder = BagRecorder(out, robot_id=keys.robot_id, split_bytes=int(args.split_size_mb * 1e6),
-                               split_duration_s=args.split_duration)
-    except FileExistsError as exc:
-        print(f"zagv record: {exc}", file=sys.stderr)
-        return 2
-    samples: queue.Queue[tuple[str, bytes, int | None, int]] = queue.Queue()
-    pending: list[tuple[str, bytes, int | None, int]] = []
-    clock = LogClock()
-    clock_key = keys("clock")
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        # stamped on arrival: a recorder that falls behind still logs each message at the time it was published
-        key, payload = str(sample.key_expr), sample.payload.to_bytes()
-        if key == clock_key:
-            with contextlib.suppress(codec.ProtoDecodeError):
-                clock.on_clock(codec.decode_as(Clock, payload, key))
-        samples.put((key, payload, *clock.arrival()))
-
-    session = client_session(args)
-    subs = []
-    bad: dict[str, int] = {}
-
-    def write(key: str, payload: bytes, sim_ns: int | None, wall_ns: int) -> None:
-        log_ns = clock.log_ns(sim_ns, wall_ns)
-        if log_ns is None:
-            pending.append((key, payload, sim_ns, wall_ns))
-            return
-        while pending:
-            write(*pending.pop(0))
-        name = split_key(key)[1]
-        if name not in TOPICS or (names is not None and name not in names):
-            return
-        try:
-            msg = codec.decode(name, payload)
-        except codec.ProtoDecodeError as exc:
-            bad[name] = bad.get(name, 0) + 1
-            if bad[name] == 1:
-                print(f"zagv record: skipping bad payloads on {name}: {exc}", file=sys.stderr)
-            return
-        recorder.write(name, msg, log_ns)
-
-    try:
-        if names is None:
-            subs.append(session.declare_subscriber(keys.everything, on_sample))
-        else:
-            subs += [session.declare_subscriber(keys(n), on_sample) for n in dict.fromkeys([*names, "clock"])]
-        clock.subscribed()
-        if names is None or "map" in names:
-            session.get(keys("map"), lambda r: on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
-        next_line = time.monotonic() + 1.0
-        while True:
-            with contextlib.suppress(queue.Empty):
-                write(*samples.get(timeout=0.2))
-            if not args.quiet and time.monotonic() >= next_line:
-                next_line += 1.0
-                print(f"\rzagv record: {recorder.stats.line()}", end="", flush=True)
-            if args.duration and recorder.stats.duration_s >= args.duration:
-                break
-    except KeyboardInterrupt:
-        pass
-    finally:
-        for s in subs:
-            s.undeclare()
-        session.close()
-        clock.decide_now()  # for what is still undecided
-        while True:  # what arrived before the stop is written
-            try:
-                write(*samples.get_nowait())
-            except queue.Empty:
-                break
-        while pending:
-            write(*pending.pop(0))
-        bags = recorder.close()
-        print(f"\rzagv record: {recorder.stats.line()}")
-        for bag in bags:
-            print(f"zagv record: wrote {bag}")
-    return 0
-
+    return record(client_settings(args), client_keys(args), args.output, names, split_size_mb=args.split_size_mb,
+                  split_duration_s=args.split_duration, duration_s=args.duration, quiet=args.quiet)
