@@ -1,5 +1,6 @@
-"""The package layout holds: the CLI and the tooling packages import no service at module level, the scenario
-package has no import cycle, ``zagv map`` never imports localization, and no service is wired by importlib."""
+"""The package layout holds: the CLI only parses arguments, the tooling packages import no service at module level,
+the scenario package has no import cycle, ``zagv map`` never imports localization, and no service is wired by
+importlib."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ SERVICES = REPO / "services"
 #: a service is a package with a node (services/common's node.py is the shared Node class, not a service)
 SERVICE_PACKAGES = sorted(p.parent.name for p in SERVICES.glob("*/node.py") if p.parent.name != "common")
 #: packages of tooling (argument parsing, starting stacks, scenarios) that must not depend on a service's code
-TOOLING = ["cli", "launch", "scenario"]
+TOOLING = ["cli", "launch", "scenario", "client"]
 
 
 def imported_modules(tree: ast.Module, *, module_level_only: bool) -> list[tuple[int, str]]:
@@ -107,19 +108,62 @@ def test_zagv_map_runs_offline_slam_without_importing_localization():
     assert not hits, hits
 
 
+#: modules of I/O and concurrency: a cli module that imports one does the work itself instead of calling it
+CLI_FORBIDDEN_IMPORTS = {"zenoh", "asyncio", "queue", "socket", "subprocess", "time", "termios", "tty", "msgspec",
+                         "numpy", "threading"}
+#: ``threading`` in main.py only asks whether it runs on the main thread before installing the SIGTERM handler
+CLI_ALLOWED_IMPORTS = {"main.py": {"threading", "signal"}}
+#: a function that is not a parser definition may have this many lines (def line included): a call, a few conversions
+CLI_MAX_FUNCTION_LINES = 12
+
+
+def is_parser_definition(name: str) -> bool:
+    return name in ("register", "build_parser") or name.startswith(("add_", "_add_"))
+
+
+def cli_violations(source: str, allowed_imports: frozenset[str] = frozenset()) -> list[str]:
+    """What makes a cli module more than argument parsing: a class, an import of an I/O or concurrency module, a
+    function other than a parser definition longer than ``CLI_MAX_FUNCTION_LINES``."""
+    tree = ast.parse(source)
+    found = []
+    for line, name in imported_modules(tree, module_level_only=False):
+        top = name.split(".")[0]
+        if top in CLI_FORBIDDEN_IMPORTS and top not in allowed_imports:
+            found.append(f"{line}: imports {top}")
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef):
+            found.append(f"{node.lineno}: class {node.name}")
+        elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and not is_parser_definition(node.name):
+            lines = (node.end_lineno or node.lineno) - node.lineno + 1
+            if lines > CLI_MAX_FUNCTION_LINES:
+                found.append(f"{node.lineno}: {node.name} is {lines} lines")
+    return found
+
+
+def test_the_cli_rule_sees_what_it_looks_for():
+    long_body = "".join(f"    x{k} = {k}\n" for k in range(CLI_MAX_FUNCTION_LINES))
+    source = ("import argparse\nimport zenoh\nfrom queue import Queue\n"
+              "class LogClock:\n    pass\n"
+              f"def run(args):\n{long_body}"
+              f"def register(sub):\n{long_body}"
+              "def run_short(args):\n    return 0\n")
+    assert cli_violations(source) == ["2: imports zenoh", "3: imports queue", "4: class LogClock",
+                                      f"6: run is {CLI_MAX_FUNCTION_LINES + 1} lines"]
+    assert cli_violations("import threading\n", frozenset({"threading"})) == []
+
+
 def test_the_cli_is_argument_parsing():
-    """Every command module of services/cli registers a parser; the work lives in the packages it calls."""
+    """Every command module of services/cli registers a parser and hands the work to the package that does it:
+    no classes, no I/O or concurrency modules, no function but parser definitions over a few lines."""
     from services.cli.main import COMMANDS
 
     assert all(callable(getattr(module, "register", None)) for module in COMMANDS)
-    moved = {"up.py": "launch", "router.py": "launch", "install_units.py": "launch", "scenario.py": "scenario"}
-    for name, package in moved.items():
-        text = (SERVICES / "cli" / name).read_text()
-        assert f"services.{package}" in text, name
-        assert "asyncio" not in text and "subprocess" not in text, f"services/cli/{name} does more than parse"
+    found = {path.name: hits for path in sorted((SERVICES / "cli").glob("*.py"))
+             if (hits := cli_violations(path.read_text(), frozenset(CLI_ALLOWED_IMPORTS.get(path.name, set()))))}
+    assert not found, f"services/cli does more than parse arguments: {found}"
 
 
-@pytest.mark.parametrize("package", ["scenario", "launch", "cli"])
+@pytest.mark.parametrize("package", ["scenario", "launch", "cli", "client"])
 def test_no_import_cycle(package):
     graph = package_graph(SERVICES / package)
     assert len(graph) > 1

@@ -1,6 +1,6 @@
 """Benchmark rows for ``zagv bench``.
 
-A module ``services/<name>/bench.py`` (or a whole-stack or log bench listed in services/cli/bench.py) exposes
+A module ``services/<name>/bench.py`` (or a whole-stack or log bench listed in services/launch/bench.py) exposes
 ``BENCHES: list[tuple[str, Callable[[], list[BenchRow]]]]``: a group name (the prefix of its rows, e.g.
 ``"kinematics"``) and a function that measures and returns rows. ``zagv bench --only PREFIX`` runs the groups whose
 name starts with PREFIX or that PREFIX starts with.
