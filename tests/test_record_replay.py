@@ -17,8 +17,8 @@ from rosbags.typesys import Stores, get_typestore
 
 from proto import codec
 from proto import messages as m
+from services.common.se2 import quaternion_to_yaw
 from services.launch.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
-from services.recorder.rosconv import quat_to_yaw
 
 # a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(900)]
@@ -34,7 +34,7 @@ def _stamp(header) -> float:
 
 
 def _yaw(q) -> float:
-    return quat_to_yaw(q.x, q.y, q.z, q.w)
+    return quaternion_to_yaw(q.x, q.y, q.z, q.w)
 
 
 def _by_stamp(t: type, payloads: list[bytes]) -> dict[int, list]:

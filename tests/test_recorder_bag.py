@@ -14,9 +14,9 @@ from rosbags.typesys import Stores, get_typestore
 
 from proto import codec
 from proto import messages as m
+from services.common.se2 import quaternion_to_yaw
 from services.recorder.bag import BagRecorder
 from services.recorder.blackbox import RingBuffer, Triggers, save
-from services.recorder.rosconv import quat_to_yaw
 from services.recorder.source import BagSource
 
 
@@ -77,7 +77,7 @@ def test_rosbags_reader_decodes_every_field(tmp_path: Path) -> None:
         p = o.pose.pose
         assert (o.header.frame_id, o.child_frame_id) == ("odom", "base_link")
         assert (p.position.x, p.position.y) == (want.pose.x, want.pose.y)
-        assert quat_to_yaw(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w) == pytest.approx(
+        assert quaternion_to_yaw(p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w) == pytest.approx(
             want.pose.theta, abs=1e-12)
         assert (o.twist.twist.linear.x, o.twist.twist.linear.y, o.twist.twist.angular.z) == (0.2, -0.05, 0.3)
         assert o.pose.covariance[0 * 6 + 1] == 1.0 and o.pose.covariance[5 * 6 + 5] == 8.0

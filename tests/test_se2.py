@@ -68,16 +68,27 @@ def test_compose_on_rows_and_points() -> None:
 # --------------------------------------------------------------------------- one definition of each
 
 
+#: 2 pi and pi in the spellings the copies used: ``2 * math.pi``, ``2.0*np.pi``, ``2 * pi``, ``math.tau``, ``TWO_PI``
+TWO_PI = r"(2(\.0)?\s*\*\s*((math|np)\.)?pi|((math|np)\.)?tau|TWO_PI|TAU)"
+PI = r"((math|np)\.)?pi\b"
 COPIES = {
     "angle wrap": [
         r"def (wrap|wrap_angle|normalize_angle|angle_wrap|wrap_to_pi)\((?!self)",
-        r"atan2\(\s*(math|np)\.sin\(",
-        r"% \(?(2(\.0)? \* (math|np)\.pi|math\.tau|np\.tau|TWO_PI|TAU)\)? - (math|np)\.pi",
-        r"math\.remainder\([^)]*, (2(\.0)? \* math\.pi|math\.tau)\)",
+        r"(atan2|arctan2)\(\s*((math|np)\.)?sin\(",
+        rf"%\s*\(?\s*{TWO_PI}\s*\)?\s*-\s*{PI}",
+        rf"(np\.)?mod\([^;]*,\s*{TWO_PI}\s*\)\s*-\s*{PI}",
+        rf"remainder\([^)]*,\s*{TWO_PI}\s*\)",
+        rf"[-+]=\s*{TWO_PI}\b",
+        r"angle\(\s*np\.exp\(\s*1j",
     ],
     "SE(2) compose": [
         r"def (_?compose|_?inverse|relative|_?between|oplus|ominus)\(",
         r"\+ (c|ct|math\.cos\([^)]*\)) \* \w+(\[0\]|\.x) - (s|st|math\.sin\([^)]*\)) \* \w+(\[1\]|\.y)",
+    ],
+    "quaternion and yaw": [
+        r"def _?(yaw_to_quat|quat_to_yaw|quaternion_from_yaw|yaw_from_quat|quaternion_to_yaw|yaw_to_quaternion)\w*\(",
+        r"atan2\(\s*2(\.0)?\s*\*\s*\(\s*[\w.]*w\s*\*\s*[\w.]*z",
+        r"\bsin\(\s*[\w.]+\s*/\s*2(\.0)?\s*\),\s*\w*\s*=?\s*(math\.)?cos\(",
     ],
     "twist limits": [
         r"def clamp_twist\(",
@@ -88,7 +99,8 @@ HOME = {"services/common/se2.py", "services/common/robot.py"}
 
 
 def test_one_definition_of_wrap_compose_and_twist_limits() -> None:
-    """Every angle wrap, SE(2) composition and twist clamp goes through services/common (se2.py, robot.py)."""
+    """Every angle wrap, SE(2) composition, quaternion/yaw conversion and twist clamp goes through services/common
+    (se2.py, robot.py)."""
     copies = []
     for folder in ("services", "proto", "tools", "tests"):
         for path in sorted((REPO_ROOT / folder).rglob("*.py")):
@@ -105,17 +117,28 @@ def test_one_definition_of_wrap_compose_and_twist_limits() -> None:
 
 
 def test_the_guard_sees_a_copy(tmp_path: Path) -> None:
-    """The patterns above match the forms the copies had (so the guard can fail)."""
+    """The patterns above match the forms the copies had and other spellings of them (so the guard can fail), and
+    not the one-sided folds that are not a wrap."""
     forms = {
         "angle wrap": ["def wrap(a):", "math.atan2(math.sin(t), math.cos(t))",
                        "(a + math.pi) % (2 * math.pi) - math.pi", "math.remainder(b - a, 2 * math.pi)",
-                       "(t + math.pi) % TWO_PI - math.pi"],
+                       "(t + math.pi) % TWO_PI - math.pi", "(a + pi) % (2 * pi) - pi",
+                       "np.arctan2(np.sin(th), np.cos(th))", "atan2(sin(a), cos(a))",
+                       "np.mod(d + np.pi, 2.0*np.pi) - np.pi", "(a + math.pi) % math.tau - math.pi",
+                       "a -= 2 * math.pi", "th += 2.0 * np.pi", "np.angle(np.exp(1j * a))"],
         "SE(2) compose": ["def compose(a, b):", "a[0] + c * b[0] - s * b[1]", "r.x + c * mx.x - s * my.y"],
+        "quaternion and yaw": ["def yaw_to_quat(theta):", "def quat_to_yaw(x, y, z, w):",
+                               "math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))",
+                               "math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y ** 2 + q.z ** 2))",
+                               "z=math.sin(theta / 2.0), w=math.cos(theta / 2.0)"],
         "twist limits": ["def clamp_twist(self):", "class Limits:"],
     }
     for helper, samples in forms.items():
         for sample in samples:
             assert any(re.search(p, sample) for p in COPIES[helper]), (helper, sample)
+    not_copies = ["np.mod(wrap_angle(b - a), 2 * math.pi)", "roll = math.atan2(2 * (q.w * q.x + q.y * q.z), 1)"]
+    for sample in not_copies:
+        assert not any(re.search(p, sample) for patterns in COPIES.values() for p in patterns), sample
 
 
 def test_robot_pose_and_frame_prefers_map_odom_then_odometry_then_the_map_pose() -> None:

@@ -8,6 +8,7 @@ shape (3,) or (N, 3) (vectorised, an array back); an array in either argument se
   ``(xa + cos(ta) xb - sin(ta) yb, ya + sin(ta) xb + cos(ta) yb, wrap(ta + tb))``.
 - ``inverse(a) = ⊖a`` with ``a ⊕ ⊖a = 0``; ``between(a, b) = ⊖a ⊕ b`` (pose b seen from frame a).
 - ``transform_points(pose, p) = R(theta) p + t`` for points (N, 2) given in frame ``pose``.
+- ``yaw_to_quaternion``/``quaternion_to_yaw``: a planar heading as the rotation about z of ROS messages.
 """
 
 from __future__ import annotations
@@ -89,6 +90,16 @@ def transform_points(pose: np.ndarray | Sequence[float], points: np.ndarray) -> 
     out[:, 0] = c * points[:, 0] - s * points[:, 1] + pose[0]
     out[:, 1] = s * points[:, 0] + c * points[:, 1] + pose[1]
     return out
+
+
+def yaw_to_quaternion(yaw_rad: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation by ``yaw_rad`` about z: (0, 0, sin(yaw/2), cos(yaw/2))."""
+    return 0.0, 0.0, math.sin(yaw_rad / 2.0), math.cos(yaw_rad / 2.0)
+
+
+def quaternion_to_yaw(x: float, y: float, z: float, w: float) -> float:
+    """The rotation about z of a quaternion (ROS's tf2 getYaw): atan2(2 (w z + x y), 1 - 2 (y² + z²))."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 def interpolate(stamps_s: np.ndarray, poses: np.ndarray, at_s: np.ndarray | float) -> np.ndarray:

@@ -21,6 +21,7 @@ from foxglove import messages as fm
 from proto import codec
 from proto import messages as m
 from services.common.robot import RobotSpec
+from services.common.se2 import quaternion_to_yaw, yaw_to_quaternion
 
 WHEEL_LENGTH_M = 0.2
 WHEEL_WIDTH_M = 0.08
@@ -32,7 +33,8 @@ def timestamp(stamp_s: float) -> fm.Timestamp:
 
 
 def quat(theta: float) -> fm.Quaternion:
-    return fm.Quaternion(x=0.0, y=0.0, z=math.sin(theta / 2.0), w=math.cos(theta / 2.0))
+    x, y, z, w = yaw_to_quaternion(theta)
+    return fm.Quaternion(x=x, y=y, z=z, w=w)
 
 
 def pose(x: float, y: float, theta: float) -> fm.Pose:
@@ -109,7 +111,7 @@ def goal_from_json(doc: dict[str, Any]) -> tuple[float, float, float]:
     pos, ori = body["position"], body.get("orientation", {"x": 0, "y": 0, "z": 0, "w": 1})
     x, y = float(pos["x"]), float(pos["y"])
     qx, qy, qz, qw = (float(ori.get(k, 0.0)) for k in ("x", "y", "z", "w"))
-    theta = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    theta = quaternion_to_yaw(qx, qy, qz, qw)
     if not all(map(math.isfinite, (x, y, theta))):
         raise ValueError("goal pose is not finite")
     return x, y, theta

@@ -31,6 +31,7 @@ from rosbags.typesys.store import Typestore
 from proto import codec
 from proto import messages as m
 from proto.registry import TOPICS
+from services.common.se2 import quaternion_to_yaw, yaw_to_quaternion
 
 #: the lossless carrier of zagv-only messages
 ZAGV_MESSAGE_TYPE = "zagv_msgs/msg/Message"
@@ -79,15 +80,6 @@ def ros_type(name: str) -> str:
     return STANDARD_TYPES.get(name, ZAGV_MESSAGE_TYPE)
 
 
-def yaw_to_quat(theta: float) -> tuple[float, float, float, float]:
-    """(x, y, z, w) of a rotation by ``theta`` rad about z."""
-    return 0.0, 0.0, math.sin(theta / 2.0), math.cos(theta / 2.0)
-
-
-def quat_to_yaw(x: float, y: float, z: float, w: float) -> float:
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
 def stamp_to_ns(stamp_s: float) -> int:
     return int(round(stamp_s * 1e9))
 
@@ -127,7 +119,7 @@ class RosEncoder:
         return self.t["std_msgs/msg/Header"](stamp=self.time(stamp_s), frame_id=frame)
 
     def quat(self, theta: float) -> Any:
-        x, y, z, w = yaw_to_quat(theta)
+        x, y, z, w = yaw_to_quaternion(theta)
         return self.t["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
 
     def pose(self, x: float, y: float, theta: float) -> Any:
@@ -326,7 +318,7 @@ class RosDecoder:
 
 
 def _yaw(q: Any) -> float:
-    return quat_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
+    return quaternion_to_yaw(float(q.x), float(q.y), float(q.z), float(q.w))
 
 
 def _proto_type(type_name: str) -> type[m.Message]:
