@@ -12,7 +12,12 @@ Control phases of a goal:
 3. driving: DWA along the path; replanning at ``planner_frequency_hz`` and at once when the path ahead is blocked;
 4. fine approach within ``fine_approach_distance_m``: a P-controller on the goal pose (holonomic: x, y and theta
    at once), speeds limited by sqrt(2 a d) so it stops without overshoot, until the errors are below the fine
-   targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached).
+   targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached) and
+   localization vouching for its pose: ``localization_std_factor`` times its position std along the weakest
+   direction within the xy tolerance (and the same for the heading). Nav2's goal checker compares the estimate
+   only; where the scans do not pin a direction (one straight wall in view, a corridor whose ends are out of range)
+   the estimate along it is dead reckoning and can be decimetres off while it sits on the goal. Such a goal waits
+   ``localization_vouch_wait_s`` for updates at rest, then fails saying why.
 Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) climb a
 ladder of escapes, each of which changes something: for a failed search clear the costmaps, wait (a person or cart
 may move away), replan with relaxed costs (no clearance preference: a tighter route), spin (look around), back up;
