@@ -76,14 +76,14 @@ def scan_information(distance_m: np.ndarray, origin: tuple[float, float, float],
     ga = (th + mth)[:, None] + bearings[None, :]
     ex = lx[:, None] + ranges[None, :] * np.cos(ga)
     ey = ly[:, None] + ranges[None, :] * np.sin(ga)
-    d = interpolated_distance(distance_m, origin, resolution, ex, ey, math.inf)
+    d = interpolated_distance(distance_m, origin, resolution, ex, ey, math.nan)  # beyond the map: no gradient
+    inlier = (d[0] < p.inlier_m) & np.all(np.isfinite(d), axis=0)
+    d = d[:, inlier]
     # one-sided slopes, the steeper kept: an endpoint on a wall sits at the V of the distance (|slope| 1 both ways)
     # or inside a one-cell wall, on the field's zero plateau (flat one way); a central difference halves both
     fwd = np.column_stack([(d[1 + 2 * i] - d[0]) / steps[i] for i in range(3)])
     bwd = np.column_stack([(d[0] - d[2 + 2 * i]) / steps[i] for i in range(3)])
     jac = np.where(np.abs(fwd) >= np.abs(bwd), fwd, bwd)
-    inlier = (d[0] < p.inlier_m) & np.all(np.isfinite(d), axis=0)
-    jac = jac[inlier]
     return (jac.T @ jac) / (sigma_hit_m ** 2)
 
 
