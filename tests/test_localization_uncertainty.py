@@ -128,3 +128,4 @@ def test_goal_checker_waits_for_localization_to_vouch_then_succeeds():
     assert nav.state == "succeeded", nav.error
     finished = nav.take_finished()
     assert finished[0][:2] == (gid, "succeeded") and "localization std 0.0000 m" in finished[0][2]
+    assert "vouched after" in finished[0][2]

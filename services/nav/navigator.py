@@ -347,6 +347,8 @@ class Navigator:
             error = (f"estimated error {ex:+.4f} m, {ey:+.4f} m, {eth:+.4f} rad; localization std "
                      f"{self.loc_position_std_m:.4f} m along {math.degrees(self.loc_weakest_axis_rad):.0f} deg, "
                      f"{self.loc_heading_std_rad:.4f} rad (particles {self.loc_particle_std_m:.4f} m)")
+            if g.vouch_wait_since is not None:
+                error += f", vouched after {now - g.vouch_wait_since:.1f} s of updates at rest"
             self.finished.append((g.id, state, error))
             error = ""
         else:
