@@ -11,7 +11,17 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from services.common.se2 import between, compose, interpolate, inverse, transform_points, wrap_angle
+from services.common.se2 import (
+    between,
+    compose,
+    interpolate,
+    inverse,
+    quaternion_to_yaw,
+    rotate,
+    transform_points,
+    wrap_angle,
+    yaw_to_quaternion,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 angles = st.floats(-100.0, 100.0, allow_nan=False)
@@ -63,6 +73,19 @@ def test_compose_on_rows_and_points() -> None:
     mid = interpolate(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 3.0], [2.0, 0.0, -3.0]]), 0.5)
     np.testing.assert_allclose(mid[0, :2], [1.0, 0.0])
     assert abs(wrap_angle(float(mid[0, 2])) - math.pi) < 1e-9  # the shortest arc passes through pi, not 0
+
+
+def test_rotate_is_the_rotation_of_compose_and_its_inverse_takes_vectors_into_the_frame() -> None:
+    theta = 0.7
+    x, y = rotate(theta, 1.5, -2.0)
+    cx, cy, _ = compose((0.0, 0.0, theta), (1.5, -2.0, 0.0))
+    assert (x, y) == pytest.approx((cx, cy), abs=1e-12)
+    assert rotate(-theta, x, y) == pytest.approx((1.5, -2.0), abs=1e-12)
+    gx, gy = rotate(theta, np.array([[1.0, 0.0], [0.0, 2.0]]), np.zeros((2, 2)))
+    np.testing.assert_allclose(gx, [[math.cos(theta), 0.0], [0.0, 2 * math.cos(theta)]], atol=1e-12)
+    np.testing.assert_allclose(gy, [[math.sin(theta), 0.0], [0.0, 2 * math.sin(theta)]], atol=1e-12)
+    assert quaternion_to_yaw(*yaw_to_quaternion(2.5)) == pytest.approx(2.5, abs=1e-12)
+    assert quaternion_to_yaw(*yaw_to_quaternion(-3.0)) == pytest.approx(-3.0, abs=1e-12)
 
 
 # --------------------------------------------------------------------------- one definition of each

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from proto.messages import OccupancyGrid
+from services.common.se2 import rotate
 
 #: yaw below this (rad) is treated as axis aligned
 YAW_EPS_RAD = 1e-9
@@ -25,10 +26,9 @@ def axis_aligned(data: np.ndarray, resolution: float, origin: tuple[float, float
     if abs(yaw) < YAW_EPS_RAD:
         return data, ox, oy
     h, w = data.shape
-    c, s = math.cos(yaw), math.sin(yaw)
     corners = np.array([[0.0, 0.0], [w, 0.0], [0.0, h], [w, h]]) * resolution
-    xs = ox + c * corners[:, 0] - s * corners[:, 1]
-    ys = oy + s * corners[:, 0] + c * corners[:, 1]
+    cx, cy = rotate(yaw, corners[:, 0], corners[:, 1])
+    xs, ys = ox + cx, oy + cy
     x0, y0 = float(xs.min()), float(ys.min())
     cols = int(math.ceil((xs.max() - x0) / resolution - 1e-6))
     rows = int(math.ceil((ys.max() - y0) / resolution - 1e-6))
@@ -36,8 +36,9 @@ def axis_aligned(data: np.ndarray, resolution: float, origin: tuple[float, float
     jj, ii = np.meshgrid(np.arange(cols), np.arange(rows))
     dx = x0 + (jj + 0.5) * resolution - ox
     dy = y0 + (ii + 0.5) * resolution - oy
-    src_c = np.floor((c * dx + s * dy) / resolution).astype(np.int64)
-    src_r = np.floor((-s * dx + c * dy) / resolution).astype(np.int64)
+    bx, by = rotate(-yaw, dx, dy)
+    src_c = np.floor(bx / resolution).astype(np.int64)
+    src_r = np.floor(by / resolution).astype(np.int64)
     ok = (src_c >= 0) & (src_c < w) & (src_r >= 0) & (src_r < h)
     out[ok] = data[src_r[ok], src_c[ok]]
     return out, x0, y0

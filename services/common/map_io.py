@@ -35,6 +35,7 @@ from PIL import Image, UnidentifiedImageError
 
 from proto.messages import OccupancyGrid, Pose2D
 from services.common.ros_map import FREE_THRESH, OCCUPIED_THRESH, trinary_pixels, write_ros_map
+from services.common.se2 import rotate
 
 FREE, OCCUPIED, UNKNOWN = 0, 100, -1
 SAVE_OCCUPIED_THRESH, SAVE_FREE_THRESH = OCCUPIED_THRESH, FREE_THRESH
@@ -93,19 +94,15 @@ class OccupancyMap:
     def world_to_cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Map-frame points (m) -> integer (col, row), honouring the origin's yaw; may lie outside the grid."""
         ox, oy, oyaw = self.origin
-        c, s = math.cos(oyaw), math.sin(oyaw)
-        dx, dy = np.asarray(x) - ox, np.asarray(y) - oy
-        gx = (c * dx + s * dy) / self.resolution
-        gy = (-s * dx + c * dy) / self.resolution
+        bx, by = rotate(-oyaw, np.asarray(x) - ox, np.asarray(y) - oy)
+        gx, gy = bx / self.resolution, by / self.resolution
         return np.floor(gx).astype(np.int64), np.floor(gy).astype(np.int64)
 
     def cell_to_world(self, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Centres of cells (col, row) in the map frame (m)."""
         ox, oy, oyaw = self.origin
-        c, s = math.cos(oyaw), math.sin(oyaw)
-        gx = (np.asarray(col) + 0.5) * self.resolution
-        gy = (np.asarray(row) + 0.5) * self.resolution
-        return ox + c * gx - s * gy, oy + s * gx + c * gy
+        wx, wy = rotate(oyaw, (np.asarray(col) + 0.5) * self.resolution, (np.asarray(row) + 0.5) * self.resolution)
+        return ox + wx, oy + wy
 
 
 def _shown(value: object) -> str:

@@ -7,7 +7,8 @@ shape (3,) or (N, 3) (vectorised, an array back); an array in either argument se
 - ``compose(a, b) = a ⊕ b``: pose b given in frame a, expressed in a's parent frame:
   ``(xa + cos(ta) xb - sin(ta) yb, ya + sin(ta) xb + cos(ta) yb, wrap(ta + tb))``.
 - ``inverse(a) = ⊖a`` with ``a ⊕ ⊖a = 0``; ``between(a, b) = ⊖a ⊕ b`` (pose b seen from frame a).
-- ``transform_points(pose, p) = R(theta) p + t`` for points (N, 2) given in frame ``pose``.
+- ``transform_points(pose, p) = R(theta) p + t`` for points (N, 2) given in frame ``pose``; ``rotate(a, x, y)``
+  the rotation alone, for vectors and grids of any shape.
 - ``yaw_to_quaternion``/``quaternion_to_yaw``: a planar heading as the rotation about z of ROS messages.
 """
 
@@ -81,6 +82,18 @@ def between(a: np.ndarray | Sequence[float], b: np.ndarray | Sequence[float]) ->
     if not isinstance(a, np.ndarray) and not isinstance(b, np.ndarray):
         return compose(inverse(a), b)
     return compose(inverse(np.asarray(a, float)), np.asarray(b, float))
+
+
+@overload
+def rotate(angle_rad: float, x: float, y: float) -> tuple[float, float]: ...
+@overload
+def rotate(angle_rad: float, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+def rotate(angle_rad: float, x: float | np.ndarray, y: float | np.ndarray
+           ) -> tuple[float, float] | tuple[np.ndarray, np.ndarray]:
+    """R(angle) (x, y) = (cos a x - sin a y, sin a x + cos a y); ``rotate(-theta, ...)`` takes a vector of the
+    parent frame into frame theta. x and y are floats or arrays of one shape (grids of points)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return c * x - s * y, s * x + c * y  # type: ignore[return-value]
 
 
 def transform_points(pose: np.ndarray | Sequence[float], points: np.ndarray) -> np.ndarray:

@@ -27,7 +27,7 @@ import numpy as np
 from proto import codec
 from proto import messages as m
 from services.common.robot import RobotSpec
-from services.common.se2 import wrap_angle
+from services.common.se2 import rotate, wrap_angle
 
 if TYPE_CHECKING:
     from services.scenario.client import Client
@@ -56,8 +56,7 @@ def jog_command(pose: Pose, target: Pose, spec: RobotSpec, speed_mps: float, *, 
     wrap_angle(target_theta - theta)`` clamped to ``wz_max``.
     """
     dx, dy = target[0] - pose[0], target[1] - pose[1]
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    bx, by = c * dx + s * dy, -s * dx + c * dy
+    bx, by = rotate(-pose[2], dx, dy)
     dist = math.hypot(bx, by)
     vx = vy = 0.0
     if dist > 1e-9:
