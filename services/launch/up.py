@@ -193,8 +193,8 @@ class StackPlan:
 
 
 #: per-service environment, as the systemd units set it (the caller's own value wins). hmi_api: glibc keeps at most
-#: 2 malloc arenas instead of 8 per core for its threads, 127 -> 109 MB resident (zagv bench stack); the same
-#: setting took nav from 127 to 145 MB and left the others within 2 MB, so it is not set for them.
+#: 2 malloc arenas instead of 8 per core for its threads, 108-109 MB resident in every run against up to 129 without
+#: (zagv bench stack, docs/performance.md); the same setting took nav from 127 to 145 MB, so it is not set for others.
 SERVICE_ENV: dict[str, dict[str, str]] = {"hmi_api": {"MALLOC_ARENA_MAX": "2"}}
 
 
