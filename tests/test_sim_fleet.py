@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import msgspec
 import numpy as np
@@ -130,6 +131,10 @@ def test_launcher_plans_one_simulator_and_a_stack_per_robot(tmp_path) -> None:  
     resolve_fleet(single)
     assert single.fleet == [] and single.robot_ids == ["r1"]
     assert [c.name for c in single.children()][:3] == ["canbus", "sim", "drive"]
+    # hmi_api alone runs with 2 malloc arenas (docs/performance.md)
+    envs = {c.name: c.env for c in StackPlan(run_dir=str(tmp_path)).children()}
+    if "MALLOC_ARENA_MAX" not in os.environ:
+        assert envs["hmi_api"].get("MALLOC_ARENA_MAX") == "2" and "MALLOC_ARENA_MAX" not in envs["nav"]
 
     plan = StackPlan(run_dir=str(tmp_path), headless=True, robot_count=3, can_port=5000, lidar_port=6000)
     resolve_fleet(plan)

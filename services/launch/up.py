@@ -187,8 +187,15 @@ class StackPlan:
                 continue
             for k in robots:
                 argv = python_module(f"services.{name}", *self.common_args(k), *self.service_sets(name, k))
-                specs.append(ChildSpec(self.child_name(k, name), argv, env=env))
+                extra = {key: os.environ.get(key, value) for key, value in SERVICE_ENV.get(name, {}).items()}
+                specs.append(ChildSpec(self.child_name(k, name), argv, env={**env, **extra}))
         return specs
+
+
+#: per-service environment, as the systemd units set it (the caller's own value wins). hmi_api: glibc keeps at most
+#: 2 malloc arenas instead of 8 per core for its threads, 108-109 MB resident in every run against up to 129 without
+#: (zagv bench stack, docs/performance.md); the same setting took nav from 127 to 145 MB, so it is not set for others.
+SERVICE_ENV: dict[str, dict[str, str]] = {"hmi_api": {"MALLOC_ARENA_MAX": "2"}}
 
 
 def _toml_str(s: str) -> str:

@@ -168,7 +168,10 @@ class CollisionMonitor:
             return
         order = np.argsort(-seen_at_m, kind="stable")
         cells = np.floor(odom_points[order] / self.params.memory_cell_m).astype(np.int64)
-        _, first = np.unique(cells, axis=0, return_index=True)
+        # one int64 key per cell, ordered as the (column, row) pairs are (np.unique on rows sorts a structured copy,
+        # several times slower): column * 2^32 + (row + 2^31), exact for |cell index| < 2^31
+        keys = (cells[:, 0] << 32) + (cells[:, 1] + (1 << 31))
+        _, first = np.unique(keys, return_index=True)
         pick = order[first]
         self.memory, self.memory_seen_at_m = odom_points[pick], seen_at_m[pick]
 
@@ -234,10 +237,12 @@ class CollisionMonitor:
             s, c1 = np.sin(wz * t) / wz, (1.0 - np.cos(wz * t)) / wz
             cx, cy = s * vx - c1 * vy, c1 * vx + s * vy
         points = self.points
-        # only points the footprint is not already touching can be contacted
+        # only points the footprint is not already touching can be contacted, and only within reach: the centre
+        # moves at most |v| T along its arc, so a point farther than |v| T + r from it now is never inside the circle
         start_d2 = points[:, 0] ** 2 + points[:, 1] ** 2
         r = p.robot_radius_m
-        points = points[start_d2 >= r * r]
+        reach_m = math.hypot(vx, vy) * float(t[-1]) + r
+        points = points[(start_d2 >= r * r) & (start_d2 < reach_m * reach_m)]
         d2 = (points[None, :, 0] - cx[:, None]) ** 2 + (points[None, :, 1] - cy[:, None]) ** 2
         hit = np.nonzero((d2 < r * r).any(axis=1))[0]
         return float(t[hit[0]]) if hit.size else None

@@ -12,8 +12,6 @@ ignores it. The first node is held fixed.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
 
 from services.common.se2 import wrap_angle
 
@@ -128,6 +126,11 @@ class PoseGraph:
         """Sparse Gauss-Newton with a small Levenberg damping; returns the number of iterations run."""
         if self.n_edges == 0 or self.n_nodes < 2:
             return 0
+        # imported here: scipy.sparse (and the scipy.linalg it loads) is about 10 MB resident, and the localization
+        # service loads this module in navigation mode too, where no graph is ever optimised
+        import scipy.sparse as sp
+        from scipy.sparse.linalg import spsolve
+
         x = self.poses()
         n = len(x)
         i = np.asarray(self._edges_i)
