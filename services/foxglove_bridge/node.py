@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+from collections.abc import Callable
 from typing import Any
 
 import foxglove
@@ -20,6 +21,8 @@ from foxglove import channels as fc
 from foxglove.websocket import Capability, ChannelView, Client, ClientChannel
 
 from proto import messages as m
+from services.common.node import Node
+from services.common.robot import RobotSpec
 from services.common.service import ServiceContext
 from services.foxglove_bridge import convert
 from services.foxglove_bridge.config import FoxgloveConfig
@@ -53,87 +56,100 @@ class Listener(foxglove.ServerListener):
             self.loop.call_soon_threadsafe(self._on_goal, bytes(data))
 
 
+class Channels:
+    """The bridge's Foxglove channels and what it keeps between messages: the last grids (re-sent when a client
+    subscribes), the last wheel states and when the robot scene was last drawn (odometry stamps, s)."""
+
+    def __init__(self, context: foxglove.Context, robot: RobotSpec, robot_hz: float) -> None:
+        self.scan = fc.LaserScanChannel("/scan", context=context)
+        self.grids = {"/map": fc.GridChannel("/map", context=context),
+                      "/costmap": fc.GridChannel("/costmap", context=context)}
+        self.tf = fc.FrameTransformsChannel("/tf", context=context)
+        self.path = fc.PosesInFrameChannel("/path", context=context)
+        self.local_plan = fc.PosesInFrameChannel("/local_plan", context=context)
+        self.particles = fc.PosesInFrameChannel("/particles", context=context)
+        self.robot_scene = fc.SceneUpdateChannel("/robot", context=context)
+        self.robot = robot
+        self.robot_every_s = 1.0 / robot_hz if robot_hz > 0 else math.inf
+        self.last_grid: dict[str, Any] = {}
+        self.wheels: m.WheelStates | None = None
+        self.last_robot_s = -math.inf
+
+    @staticmethod
+    def log(channel: Any, msg: Any, stamp_s: float) -> None:
+        """Log ``msg`` on ``channel`` with the message's own stamp as the log time (ns)."""
+        t = convert.timestamp(stamp_s)
+        channel.log(msg, log_time=t.sec * 1_000_000_000 + t.nsec)
+
+    def resend(self, topic: str) -> None:
+        """A client subscribed: send it the last grid of ``topic`` (maps change rarely)."""
+        grid = self.last_grid.get(topic)
+        if grid is not None:
+            self.grids[topic].log(grid)
+
+    def on_scan(self, s: m.LaserScan) -> None:
+        self.log(self.scan, convert.laser_scan(s), s.stamp)
+        self.log(self.tf, convert.transforms(s), s.stamp)
+
+    def on_grid(self, topic: str) -> Callable[[m.OccupancyGrid], None]:
+        def handle(g: m.OccupancyGrid) -> None:
+            self.last_grid[topic] = convert.grid(g)
+            self.log(self.grids[topic], self.last_grid[topic], g.stamp)
+        return handle
+
+    def on_tf(self, msg: m.Message) -> None:
+        """odom and map->odom as transforms; with odometry, the robot scene at most ``robot_hz``."""
+        stamp = float(getattr(msg, "stamp", 0.0))
+        self.log(self.tf, convert.transforms(msg), stamp)
+        if isinstance(msg, m.Odometry) and stamp - self.last_robot_s >= self.robot_every_s:
+            self.last_robot_s = stamp
+            self.log(self.robot_scene, convert.robot_scene(self.robot, self.wheels, stamp), stamp)
+
+    def on_wheels(self, w: m.WheelStates) -> None:
+        self.wheels = w
+
+    def on_poses(self, channel: Any) -> Callable[[Any], None]:
+        return lambda p: self.log(channel, convert.poses(p), p.stamp)
+
+
+async def send_goal(node: Node, payload: bytes) -> None:
+    """A pose a Foxglove client published becomes a ``nav/goal`` query; a bad one is logged and dropped."""
+    try:
+        x, y, theta = convert.goal_from_json(json.loads(payload))
+    except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        node.log.warning("goal from Foxglove ignored: %s", exc)
+        return
+    try:
+        reply = await node.query("nav/goal", m.GoalRequest(pose=m.Pose2D(x=x, y=y, theta=theta)))
+        node.log.info("goal from Foxglove (%.2f, %.2f, %.2f): %s", x, y, theta,
+                      "accepted" if reply.accepted else f"rejected: {reply.reason}")
+    except Exception as exc:  # noqa: BLE001 - reported, the bridge goes on
+        node.log.warning("goal from Foxglove failed: %s", exc)
+
+
 async def run(ctx: ServiceContext) -> None:
     cfg: FoxgloveConfig = ctx.config["foxglove"]
     node = ctx.node
-    robot = ctx.robot
     context = foxglove.Context()
-    scan_ch = fc.LaserScanChannel("/scan", context=context)
-    map_ch = fc.GridChannel("/map", context=context)
-    costmap_ch = fc.GridChannel("/costmap", context=context)
-    tf_ch = fc.FrameTransformsChannel("/tf", context=context)
-    path_ch = fc.PosesInFrameChannel("/path", context=context)
-    local_ch = fc.PosesInFrameChannel("/local_plan", context=context)
-    particles_ch = fc.PosesInFrameChannel("/particles", context=context)
-    robot_ch = fc.SceneUpdateChannel("/robot", context=context)
-    last: dict[str, Any] = {}
-    wheels: list[m.WheelStates | None] = [None]
-    robot_every_s = 1.0 / cfg.robot_hz if cfg.robot_hz > 0 else math.inf
-    last_robot_s = [-math.inf]
-
-    def log(channel: Any, msg: Any, stamp_s: float) -> None:
-        channel.log(msg, log_time=convert.timestamp(stamp_s).sec * 1_000_000_000 + convert.timestamp(stamp_s).nsec)
-
-    def resend(topic: str) -> None:
-        grid = last.get(topic)
-        if grid is not None:
-            (map_ch if topic == "/map" else costmap_ch).log(grid)
-
-    async def send_goal(payload: bytes) -> None:
-        try:
-            x, y, theta = convert.goal_from_json(json.loads(payload))
-        except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-            node.log.warning("goal from Foxglove ignored: %s", exc)
-            return
-        try:
-            reply = await node.query("nav/goal", m.GoalRequest(pose=m.Pose2D(x=x, y=y, theta=theta)))
-            node.log.info("goal from Foxglove (%.2f, %.2f, %.2f): %s", x, y, theta,
-                          "accepted" if reply.accepted else f"rejected: {reply.reason}")
-        except Exception as exc:  # noqa: BLE001 - reported, the bridge goes on
-            node.log.warning("goal from Foxglove failed: %s", exc)
-
-    listener = Listener(node.loop, resend, lambda p: node.spawn(send_goal(p)))
+    ch = Channels(context, ctx.robot, cfg.robot_hz)
+    listener = Listener(node.loop, ch.resend, lambda p: node.spawn(send_goal(node, p)))
     listener.goal_topic = cfg.goal_topic
     caps = [Capability.ClientPublish] if cfg.allow_goals else []
-    server = foxglove.start_server(name=f"zagv {robot.robot_id}", host=cfg.host, port=cfg.port, capabilities=caps,
-                                   server_listener=listener, supported_encodings=["json"] if cfg.allow_goals else None,
-                                   context=context)
+    server = foxglove.start_server(name=f"zagv {ctx.robot.robot_id}", host=cfg.host, port=cfg.port,
+                                   capabilities=caps, server_listener=listener,
+                                   supported_encodings=["json"] if cfg.allow_goals else None, context=context)
     node.log.info("Foxglove WebSocket on ws://%s:%d (goals %s)", cfg.host, server.port,
                   "allowed on " + cfg.goal_topic if cfg.allow_goals else "not allowed")
     node.extra_stats.update(port=server.port)
-
-    def on_scan(s: m.LaserScan) -> None:
-        log(scan_ch, convert.laser_scan(s), s.stamp)
-        log(tf_ch, convert.transforms(s), s.stamp)
-
-    def on_grid(topic: str, channel: Any):
-        def handle(g: m.OccupancyGrid) -> None:
-            last[topic] = convert.grid(g)
-            log(channel, last[topic], g.stamp)
-        return handle
-
-    def on_tf(msg: m.Message) -> None:
-        stamp = float(getattr(msg, "stamp", 0.0))
-        log(tf_ch, convert.transforms(msg), stamp)
-        if isinstance(msg, m.Odometry) and stamp - last_robot_s[0] >= robot_every_s:
-            last_robot_s[0] = stamp
-            log(robot_ch, convert.robot_scene(robot, wheels[0], stamp), stamp)
-
-    def on_wheels(w: m.WheelStates) -> None:
-        wheels[0] = w
-
-    def on_poses(channel: Any):
-        return lambda p: log(channel, convert.poses(p), p.stamp)
-
-    node.subscribe("scan", on_scan)
-    node.subscribe("map", on_grid("/map", map_ch), latched=True)
-    node.subscribe("nav/costmap", on_grid("/costmap", costmap_ch))
-    node.subscribe("odom", on_tf)
-    node.subscribe("tf/map_odom", on_tf, latched=True)
-    node.subscribe("wheels", on_wheels)
-    node.subscribe("nav/path", on_poses(path_ch))
-    node.subscribe("nav/local_plan", on_poses(local_ch))
-    node.subscribe("particles", on_poses(particles_ch))
+    node.subscribe("scan", ch.on_scan)
+    node.subscribe("map", ch.on_grid("/map"), latched=True)
+    node.subscribe("nav/costmap", ch.on_grid("/costmap"))
+    node.subscribe("odom", ch.on_tf)
+    node.subscribe("tf/map_odom", ch.on_tf, latched=True)
+    node.subscribe("wheels", ch.on_wheels)
+    node.subscribe("nav/path", ch.on_poses(ch.path))
+    node.subscribe("nav/local_plan", ch.on_poses(ch.local_plan))
+    node.subscribe("particles", ch.on_poses(ch.particles))
     node.ready(f"Foxglove WebSocket on port {server.port}")
     try:
         await ctx.stop.wait()
