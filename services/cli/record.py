@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import queue
+import signal
 import sys
 import time
 from datetime import datetime
@@ -99,6 +100,9 @@ def selected_names(keys: list[str]) -> list[str] | None:
 def run_record(args: argparse.Namespace) -> int:
     from services.recorder.bag import BagRecorder
 
+    # SIGINT ends the recording (the bag is closed), also when started from a script that ignores SIGINT for its
+    # background jobs (`zagv record & ... kill -INT`): a process inherits the ignore, and Python then sets no handler
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     keys = client_keys(args)
     names = selected_names(args.keys)
     out = Path(args.output or datetime.now().strftime("zagv_%Y%m%d_%H%M%S"))
