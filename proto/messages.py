@@ -64,6 +64,11 @@ class PoseWithCovariance(Message):
     relocalization), ``tracking`` while the scans fit the map, ``lost`` once they stop fitting. ``match_score`` is the
     fraction of scan beams that the map explains (0..1) and ``spread_m`` the particle cloud's position spread; both are
     the inputs of that verdict. Consumers must not act on a pose whose state is not ``tracking``.
+
+    ``position_std_m`` is how well the position is known along its weakest direction (``weakest_axis_rad`` in this
+    frame) and ``heading_std_rad`` the heading's: odometry drift grown while driving, shrunk only by what the scans
+    constrain (services/localization/uncertainty.py). Unlike the particle ``covariance`` it grows along a corridor
+    the scans do not pin. 0: not provided.
     """
 
     stamp: float = 0.0
@@ -73,6 +78,9 @@ class PoseWithCovariance(Message):
     state: LocalizationState = "tracking"
     match_score: float = 1.0
     spread_m: float = 0.0
+    position_std_m: float = 0.0
+    weakest_axis_rad: float = 0.0
+    heading_std_rad: float = 0.0
 
 
 class PoseArray(Message):

@@ -33,6 +33,12 @@ def test_no_scan_and_stale_scan_stop_everything():
     assert v.twist == (0.0, 0.0, 0.0) and v.action == "no_scan" and "0.60 s old" in v.reason
 
 
+def test_a_scan_from_before_a_clock_restart_is_not_fresh():
+    mon = monitor_with(wall_x(10.0), stamp=24.0)  # the last scan of a simulator run that then restarted at 0
+    v = mon.filter(0.2, 0.0, 0.0, now=0.05)
+    assert v.twist == (0.0, 0.0, 0.0) and v.action == "no_scan" and "clock restarted" in v.reason
+
+
 def test_non_finite_command_is_zeroed():
     mon = monitor_with(wall_x(10.0))
     assert mon.filter(math.nan, 0.0, 0.0, now=0.0).twist == (0.0, 0.0, 0.0)

@@ -16,6 +16,15 @@ from typing import Protocol
 log = logging.getLogger(__name__)
 
 
+def is_fresh(stamp_s: float, now_s: float, max_age_s: float) -> bool:
+    """|now - stamp| <= max_age: young enough, and not from ahead of now.
+
+    A stamp further ahead of ``now`` than ``max_age_s`` was taken before the clock restarted (a simulator restart
+    sets sim time back to 0); counting it as fresh would keep an old command or scan alive until the new clock
+    caught up with it."""
+    return abs(now_s - stamp_s) <= max_age_s
+
+
 class Clock(Protocol):
     """What services read time through: ``now()`` in s, sleeps, and whether it is the simulator's clock."""
 
@@ -76,11 +85,14 @@ class SimClock:
         if speed_factor is not None:
             self.speed_factor = speed_factor
         if t < self._now:
-            if t < self._now - 1.0:
-                # the simulator restarted: jump back, keep waiters relative to the new epoch
-                log.warning("sim clock jumped back from %.3f to %.3f s", self._now, t)
-                self._now = t
-            return
+            if t >= self._now - 1.0:
+                return
+            # the simulator restarted: jump back, and keep each sleeper's remaining time in the new epoch (a sleeper
+            # left at its old target would wait until the new run's clock caught up with the old one)
+            log.warning("sim clock jumped back from %.3f to %.3f s", self._now, t)
+            shift_s = t - self._now
+            self._waiters = [(target + shift_s, seq, fut) for target, seq, fut in self._waiters]
+            heapq.heapify(self._waiters)
         self._now = t
         self._started.set()
         while self._waiters and self._waiters[0][0] <= t:
@@ -119,7 +131,7 @@ class Rate:
     async def sleep(self) -> None:
         now = self.clock.now()
         self.cycles += 1
-        if self._next is None:
+        if self._next is None or self._next - now > 2.0 * self.period_s:  # first cycle, or the clock jumped back
             self._next = now + self.period_s
         elif now > self._next + self.period_s * 0.5:
             self.overruns += 1

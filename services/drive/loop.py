@@ -39,6 +39,8 @@ log = logging.getLogger("zagv.drive.loop")
 
 #: after a release, feedback may show the controllers' e-stop flag for this long (ticker s) before it is believed
 RELEASE_GRACE_S = 1.0
+#: a clock step back by more than this (ticker s) is a restart of the clock's source, not reordering
+CLOCK_RESTART_S = 1.0
 
 
 # --------------------------------------------------------------------------- timing
@@ -371,6 +373,8 @@ class DriveLoop:
     def cycle(self, now: float, periodic: bool = True) -> Snapshot | None:
         """Run one control cycle at time ``now`` (ticker clock). Returns the snapshot when it was published."""
         s = self.settings
+        if self._last_now is not None and now < self._last_now - CLOCK_RESTART_S:
+            self._restart_epoch(now)
         if periodic:
             if self._last_periodic is not None:
                 self.stats.record(now - self._last_periodic)
@@ -436,6 +440,19 @@ class DriveLoop:
                 self.publish(snap)
             return snap
         return None
+
+    def _restart_epoch(self, now: float) -> None:
+        """The clock jumped back (the simulator restarted): drop every time held from the old run.
+
+        Held times would compare as far in the future: no snapshot until the new clock caught up with the next
+        publish time, and a command from the old run would count as fresh. The command is dropped, so nothing moves
+        until a new one arrives."""
+        log.warning("clock jumped back from %.3f to %.3f s: the loop starts a new epoch", self._last_now or 0.0, now)
+        with self._cmd_lock:
+            self._cmd, self._cmd_at = None, -math.inf
+        self._released_at = -math.inf
+        self._last_now = self._last_periodic = None
+        self._next_publish = self._last_sent_at = self._published_stamp = -math.inf
 
     def _check_flags(self, feedback: list[ModuleFeedback], now: float) -> str:
         faults = []

@@ -35,6 +35,7 @@ from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.map_io import FREE, UNKNOWN, OccupancyMap
 from services.common.se2 import compose, inverse, wrap_angle
 from services.localization.refine import BeamModel, Refinement, refine_pose
+from services.localization.uncertainty import PoseUncertainty, UncertaintyParams, scan_information
 
 #: KLD histogram bin sizes (pf.c): 0.5 m, 0.5 m, 10 deg
 BIN_XY_M = 0.5
@@ -801,7 +802,8 @@ class Amcl:
     #: scan period assumed when ``process`` gets no stamp (s)
     DEFAULT_SCAN_PERIOD_S = 0.04
 
-    def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None) -> None:
+    def __init__(self, grid: OccupancyMap, params: AmclParams, rng: np.random.Generator | None = None,
+                 uncertainty_params: UncertaintyParams | None = None) -> None:
         self.params = params
         self.pf = ParticleFilter(grid, params, rng)
         self.pf_odom_pose: tuple[float, float, float] | None = None
@@ -826,6 +828,8 @@ class Amcl:
         #: a refinement waits for the next update (request_nomotion_update(refine=True))
         self.refine_pending = False
         self.last_refinement: Refinement | None = None
+        #: how well the pose is known per direction (drift while driving, shrunk by what the scans pin)
+        self.uncertainty = PoseUncertainty(uncertainty_params)
 
     def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None) -> None:
         """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2)."""
@@ -836,6 +840,7 @@ class Amcl:
         self.pf.reseed()
         self.pf.init_gaussian(pose, covariance)
         self._reinitialised()
+        self.uncertainty.reset(covariance)
         self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
@@ -896,6 +901,7 @@ class Amcl:
                       or abs(delta[2]) > p.update_min_a or self.force_update)
             if update:
                 self.pf.motion_update(odom_pose, delta)
+                self._predict_uncertainty(pth, delta)
                 self.pf_odom_pose = odom_pose
         if update:
             self.force_update = False
@@ -910,12 +916,35 @@ class Amcl:
             if self.refine_pending and dense is not None:
                 self.refine_pending = False
                 self._refine(dense, mount)
+            self._update_uncertainty(beams, mount)
             self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
             self.updates += 1
             self._updates_since_reset += 1
         if self.map_odom is not None:
             self._judge(compose(self.map_odom, odom_pose), beams, mount)
         return update
+
+    def _predict_uncertainty(self, odom_theta: float, delta: tuple[float, float, float]) -> None:
+        """Grow the tracked covariance by the odometry step ``delta`` (odom frame, from heading ``odom_theta``)."""
+        c, s = math.cos(odom_theta), math.sin(odom_theta)
+        body = (c * delta[0] + s * delta[1], -s * delta[0] + c * delta[1], delta[2])
+        heading = self.estimate.pose[2] if self.estimate is not None else odom_theta
+        self.uncertainty.predict(heading, body)
+
+    def _update_uncertainty(self, beams: ScanBeams, mount: tuple[float, float, float]) -> None:
+        """Shrink the tracked covariance by what this scan pins at the estimate; a filter that is not tracking
+        has only its particle cloud to say how well it knows the pose."""
+        est = self.estimate
+        if est is None:
+            return
+        if self.state != "tracking":
+            self.uncertainty.reset(est.covariance)
+            return
+        grid = self.pf.grid
+        info = scan_information(self.pf.field.exact_distance_m(), grid.origin, grid.resolution,
+                                self.params.sigma_hit, est.pose, beams.ranges, beams.bearings, mount,
+                                self.uncertainty.params)
+        self.uncertainty.update(info)
 
     def _refine(self, dense: ScanBeams, mount: tuple[float, float, float]) -> None:
         """Move the estimate (and every particle with it) to the dense scan's maximum-likelihood pose nearby, when

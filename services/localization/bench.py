@@ -11,6 +11,7 @@ import numpy as np
 from services.common.bench import BenchRow
 from services.common.map_io import OccupancyMap
 from services.localization.amcl import AmclParams, ParticleFilter, beam_indices
+from services.localization.uncertainty import PoseUncertainty, scan_information
 
 
 def cpu_time_calls(fn, *, repeat: int, warmup: int = 5, max_s: float = 10.0) -> np.ndarray:
@@ -87,11 +88,33 @@ def corridor_rms() -> list[BenchRow]:
     ]
 
 
+def uncertainty_update_ms(beams: int = 60, repeat: int = 500) -> float:
+    """Median CPU ms of one scan's information (``uncertainty.scan_information``, ``beams`` beams) plus the
+    tracked covariance's motion and scan updates: the per-update cost the uncertainty adds to the filter."""
+    params = AmclParams(random_seed=1)
+    pf = ParticleFilter(bench_map(), params)
+    idx = beam_indices(541, beams)
+    bearings = -math.radians(135) + idx * math.radians(0.5)
+    ranges = np.random.default_rng(2).uniform(0.5, 15.0, size=idx.size)
+    distance = pf.field.exact_distance_m()
+    grid = pf.grid
+    tracker = PoseUncertainty()
+
+    def one() -> None:
+        tracker.predict(0.3, (0.1, 0.0, 0.01))
+        tracker.update(scan_information(distance, grid.origin, grid.resolution, params.sigma_hit, (10.0, 3.0, 0.3),
+                                        ranges, bearings, (0.45, 0.0, 0.0)))
+
+    return float(np.median(cpu_time_calls(one, repeat=repeat, warmup=10, max_s=5.0)) * 1e3)
+
+
 def run() -> list[BenchRow]:
     return [
         BenchRow("amcl.update_ms", update_ms(2000), "ms", "<= 3 (2000 particles x 61 beams, update + resample)"),
         BenchRow("amcl.update_ms_5000", update_ms(5000, repeat=100), "ms", "5000 particles x 61 beams"),
         BenchRow("amcl.recovery_ms", recovery_ms(), "ms", "only while injecting (w_fast < w_slow)"),
+        BenchRow("localization.uncertainty_update_ms", uncertainty_update_ms(), "ms",
+                 "per filter update, 61 beams (small next to amcl.update_ms)"),
         *corridor_rms(),
     ]
 

@@ -318,9 +318,11 @@ class LocalizationNode:
         # the filter's verdict, held at localizing until the estimate has also settled at rest (settle.py)
         state = "localizing" if a.state == "tracking" and not self.settler.converged else a.state
         spread = a.spread_m if math.isfinite(a.spread_m) else -1.0
+        u = a.uncertainty
         msg = PoseWithCovariance(stamp=stamp, frame="map", pose=Pose2D(x=x, y=y, theta=th),
                                  covariance=covariance.reshape(-1).tolist(), state=cast(LocalizationState, state),
-                                 match_score=a.match_score, spread_m=spread)
+                                 match_score=a.match_score, spread_m=spread, position_std_m=u.position_std_m(),
+                                 weakest_axis_rad=u.weakest_axis_rad(), heading_std_rad=u.heading_std_rad())
         self.pub_pose.put(msg)
         self.stats["state"] = state
         self.stats["reason"] = a.reason

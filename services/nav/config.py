@@ -67,6 +67,14 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     # within 3 s)
     final_localization_updates: int = 2
     localization_update_timeout_s: float = 10.0
+    # the goal checker also requires localization to vouch for the pose (Nav2's checks only the estimate): its
+    # position std along the weakest direction times localization_std_factor within xy_goal_tolerance, and its
+    # heading std times the factor within yaw_goal_tolerance. Along a direction the scans do not pin (one straight
+    # wall in view) the estimate is dead reckoning. A goal not vouched for waits up to localization_vouch_wait_s of
+    # sim time for updates at rest (each adds its scan's information: a weakly pinned direction tightens, an
+    # unpinned one does not), then fails saying so. 0: no such check
+    localization_std_factor: float = 2.0
+    localization_vouch_wait_s: float = 10.0
     # turn in place first when the path leaves behind the robot (LMS111 blind sector)
     rotate_first_angle_rad: float = 0.785
     rotate_done_angle_rad: float = 0.15

@@ -126,6 +126,8 @@ class NavCycle:
             stale = now - tracker.last_update() > cfg.pose_timeout_s
             if not untrusted and planner_idle and nav.plan_due(now):
                 out.plan_request = nav.make_request(pose, now)
+            nav.loc_position_std_m, nav.loc_weakest_axis_rad = tracker.position_std_m, tracker.weakest_axis_rad
+            nav.loc_heading_std_rad, nav.loc_particle_std_m = tracker.heading_std_rad, tracker.particle_std_m
             if stale or untrusted:
                 nav.cmd = (0.0, 0.0, 0.0)
                 out.cmd = nav.cmd

@@ -12,7 +12,12 @@ Control phases of a goal:
 3. driving: DWA along the path; replanning at ``planner_frequency_hz`` and at once when the path ahead is blocked;
 4. fine approach within ``fine_approach_distance_m``: a P-controller on the goal pose (holonomic: x, y and theta
    at once), speeds limited by sqrt(2 a d) so it stops without overshoot, until the errors are below the fine
-   targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached).
+   targets and the robot has settled; success requires the goal checker's tolerances (stateful once reached) and
+   localization vouching for its pose: ``localization_std_factor`` times its position std along the weakest
+   direction within the xy tolerance (and the same for the heading). Nav2's goal checker compares the estimate
+   only; where the scans do not pin a direction (one straight wall in view, a corridor whose ends are out of range)
+   the estimate along it is dead reckoning and can be decimetres off while it sits on the goal. Such a goal waits
+   ``localization_vouch_wait_s`` for updates at rest, then fails saying why.
 Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) climb a
 ladder of escapes, each of which changes something: for a failed search clear the costmaps, wait (a person or cart
 may move away), replan with relaxed costs (no clearance preference: a tighter route), spin (look around), back up;
@@ -93,6 +98,7 @@ class GoalState:
     loc_updated: bool = False
     loc_updated_at: float = 0.0
     loc_updates: int = 0
+    vouch_wait_since: float | None = None  # when the goal checker began waiting for localization to vouch
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
     stuck_since: float | None = None
@@ -157,6 +163,12 @@ class Navigator:
         self.finished: list[tuple[str, str, str]] = []  # (goal id, state, error) events for the node
         #: set when the goal checker wants a localization update without motion; the node sends it and clears it
         self.localization_request = False
+        #: localization's own uncertainty of its last pose (PoseWithCovariance.position_std_m, weakest_axis_rad,
+        #: heading_std_rad; 0: not provided)
+        self.loc_position_std_m = 0.0
+        self.loc_weakest_axis_rad = 0.0
+        self.loc_heading_std_rad = 0.0
+        self.loc_particle_std_m = 0.0  # the particle cloud's, for the logs
         self._ids = itertools.count(1)
         self._seq = itertools.count(1)
         self._dt = 1.0 / config.controller_frequency_hz
@@ -332,7 +344,11 @@ class Navigator:
         self.local_plan = np.zeros((0, 3))
         if pose is not None and state == "succeeded":
             ex, ey, eth = pose[0] - g.pose[0], pose[1] - g.pose[1], float(wrap_angle(pose[2] - g.pose[2]))
-            error = f"estimated error {ex:+.4f} m, {ey:+.4f} m, {eth:+.4f} rad"
+            error = (f"estimated error {ex:+.4f} m, {ey:+.4f} m, {eth:+.4f} rad; localization std "
+                     f"{self.loc_position_std_m:.4f} m along {math.degrees(self.loc_weakest_axis_rad):.0f} deg, "
+                     f"{self.loc_heading_std_rad:.4f} rad (particles {self.loc_particle_std_m:.4f} m)")
+            if g.vouch_wait_since is not None:
+                error += f", vouched after {now - g.vouch_wait_since:.1f} s of updates at rest"
             self.finished.append((g.id, state, error))
             error = ""
         else:
@@ -584,8 +600,7 @@ class Navigator:
                 self.localization_request = True
                 return (0.0, 0.0, 0.0)
             if within_tol:
-                self._finish("succeeded", "", now, pose)
-                return (0.0, 0.0, 0.0)
+                return self._judge_reached(now, pose, dxy)
         g.settled_since = None
         if timed_out and now - g.fine_since > 2 * cfg.fine_timeout_s:
             self._finish("failed", f"final approach did not converge: error {dxy:.3f} m, {eth:.3f} rad", now, pose)
@@ -611,6 +626,45 @@ class Navigator:
         vx, vy = vx * scale, vy * scale
         w = self._rot_speed(eth, cfg.fine_kp_yaw) if abs(eth) > cfg.fine_yaw_target_rad * 0.5 else 0.0
         return vx, vy, w
+
+    def localization_doubt(self) -> str:
+        """Why localization cannot vouch for its pose to within the goal tolerance ('' when it can): its position
+        std along the weakest direction, or its heading std, times ``localization_std_factor`` exceeds the
+        tolerance."""
+        k = self.config.localization_std_factor
+        if k <= 0.0:
+            return ""
+        pos, head = self.loc_position_std_m, self.loc_heading_std_rad
+        if not (math.isfinite(pos) and math.isfinite(head)):
+            return "localization reports a non-finite uncertainty"
+        if k * pos > self.xy_tol:
+            return (f"localization cannot vouch for the position: std {pos:.3f} m along "
+                    f"{math.degrees(self.loc_weakest_axis_rad):.0f} deg (the scans do not pin that direction), "
+                    f"over {self.xy_tol:.3f} m / {k:g}")
+        if k * head > self.yaw_tol:
+            return (f"localization cannot vouch for the heading: std {head:.4f} rad, "
+                    f"over {self.yaw_tol:.3f} rad / {k:g}")
+        return ""
+
+    def _judge_reached(self, now: float, pose: tuple[float, float, float], dxy: float) -> tuple[float, float, float]:
+        """The estimate is within tolerance: succeed when localization vouches for it; else ask for updates at
+        rest for up to ``localization_vouch_wait_s``, then fail saying why (Nav2 trusts the estimate blindly)."""
+        g = self.goal
+        assert g is not None
+        doubt = self.localization_doubt()
+        if not doubt:
+            self._finish("succeeded", "", now, pose)
+            return (0.0, 0.0, 0.0)
+        if g.vouch_wait_since is None:
+            g.vouch_wait_since = now
+        if now - g.vouch_wait_since < self.config.localization_vouch_wait_s:
+            g.loc_requested_at = now  # another update at rest; the estimate is judged again once it is answered
+            g.loc_answered = g.loc_updated = False
+            self.localization_request = True
+            return (0.0, 0.0, 0.0)
+        self._finish("failed", f"reached by the estimate ({dxy:.3f} m off) but {doubt} "
+                               f"(particles {self.loc_particle_std_m:.4f} m)", now, pose)
+        return (0.0, 0.0, 0.0)
 
     def _check_progress(self, now: float, pose: tuple[float, float, float]) -> None:
         g = self.goal

@@ -39,6 +39,12 @@ class PoseTracker:
         #: localization's verdict on its last pose (``tracking`` is the only one nav drives on)
         self.loc_state = "tracking"
         self.loc_detail = ""
+        #: localization's uncertainty of its last pose (PoseWithCovariance fields of the same names)
+        self.position_std_m = 0.0
+        self.weakest_axis_rad = 0.0
+        self.heading_std_rad = 0.0
+        #: the particle cloud's std along its widest position direction (from ``covariance``), for the logs
+        self.particle_std_m = 0.0
 
     def on_odom(self, msg: m.Odometry) -> None:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
@@ -90,6 +96,11 @@ class PoseTracker:
         p = (msg.pose.x, msg.pose.y, msg.pose.theta)
         self.loc_state = msg.state
         self.loc_detail = f"scan match {msg.match_score:.2f}, spread {msg.spread_m:.2f} m"
+        self.position_std_m, self.weakest_axis_rad = msg.position_std_m, msg.weakest_axis_rad
+        self.heading_std_rad = msg.heading_std_rad
+        if len(msg.covariance) == 9 and all(math.isfinite(v) for v in msg.covariance):
+            c = msg.covariance
+            self.particle_std_m = math.sqrt(max(float(np.linalg.eigvalsh([[c[0], c[1]], [c[3], c[4]]])[-1]), 0.0))
         if all(math.isfinite(v) for v in p):
             self.pose, self.pose_stamp = p, msg.stamp
             self.odom_at_pose = self.odom

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
+from services.common.clock import is_fresh
 from services.common.se2 import inverse, transform_points, wrap_angle
 
 
@@ -172,7 +173,7 @@ class CollisionMonitor:
         self.memory, self.memory_seen_at_m = odom_points[pick], seen_at_m[pick]
 
     def scan_fresh(self, now: float) -> bool:
-        return now - self.scan_stamp <= self.params.scan_timeout_s
+        return is_fresh(self.scan_stamp, now, self.params.scan_timeout_s)
 
     def filter(self, vx: float, vy: float, wz: float, now: float) -> Verdict:
         """The twist allowed for the command (vx, vy, wz) at time ``now``."""
@@ -181,7 +182,8 @@ class CollisionMonitor:
             return Verdict((0.0, 0.0, 0.0), "stop", 0.0, -1.0, f"non-finite command ({vx}, {vy}, {wz})")
         if not self.scan_fresh(now):
             age = now - self.scan_stamp
-            why = "no scan yet" if not math.isfinite(age) else f"last scan {age:.2f} s old"
+            why = ("no scan yet" if not math.isfinite(age) else f"last scan {age:.2f} s old" if age >= 0
+                   else f"last scan stamped {self.scan_stamp:.2f} s, ahead of now {now:.2f} s (clock restarted)")
             return Verdict((0.0, 0.0, 0.0), "no_scan", 0.0, -1.0, why)
         speed = math.hypot(vx, vy)
         if speed <= p.min_translation_mps or self.points.shape[0] == 0:

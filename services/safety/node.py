@@ -18,6 +18,7 @@ from typing import cast
 
 from proto import array
 from proto import messages as m
+from services.common.clock import is_fresh
 from services.common.service import ServiceContext
 from services.safety.config import SafetyConfig
 from services.safety.monitor import CollisionMonitor, FieldOfView, Verdict, scan_points
@@ -115,7 +116,7 @@ class SafetyNode:
         """Re-filter the standing command against the newest scan (and its age)."""
         now = self.ctx.clock.now()
         cmd = self.last_cmd
-        if cmd is None or now - self.last_cmd_at > self.cfg.cmd_timeout_s:
+        if cmd is None or not is_fresh(self.last_cmd_at, now, self.cfg.cmd_timeout_s):
             idle = m.Twist2D()
             verdict = self.monitor.filter(0.0, 0.0, 0.0, now)
             self._state(verdict, idle, now)
