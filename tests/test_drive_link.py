@@ -273,6 +273,44 @@ def test_sim_ticker_follows_the_clock_and_wall_ticker_wakes_on_poke() -> None:
     assert not periodic and time.perf_counter() - t0 < 0.09  # woken by the poke, before the 100 ms deadline
 
 
+def test_one_odometry_message_per_stamp_when_the_clock_does_not_advance(rig: Rig) -> None:
+    """Sim clock steps (50 ms) longer than the publish period (20 ms), and an extra cycle woken by each command at the
+    same clock time with newer feedback: every stamp is published once, stamps strictly increase."""
+    from services.drive.loop import SimTicker, Snapshot
+
+    cfg = DriveConfig(can_interface="virtual", can_channel=rig.channel, rate_hz=200.0, spin_s=0.0, publish_hz=50.0)
+    ticker = SimTicker(cfg.rate_hz)
+    loop = build_loop(ROBOT, cfg, ticker)
+    published: list[Snapshot] = []
+    loop.publish = published.append
+    link = loop.link_factory()
+    link.open()
+    loop.link, loop.link_ok = link, True
+    try:
+        now = 0.0
+        for _ in range(60):
+            now += 0.05
+            ticker.advance(now)
+            loop.set_command(0.3, 0.0, 0.2)
+            loop.cycle(now, periodic=True)
+            time.sleep(0.01)  # the controllers move and report (wall time): the next cycle reads newer counts
+            loop.cycle(now, periodic=False)
+    finally:
+        loop.link, loop.link_ok = None, False
+        link.close()
+    stamps = [s.stamp for s in published]
+    assert len(stamps) == 60 and all(b > a for a, b in zip(stamps, stamps[1:])), \
+        f"{len(stamps) - len(set(stamps))} stamps published more than once"
+    assert published[-1].pose[0] > 0.01  # the chassis moved, so a second message per stamp would carry another pose
+
+
+def test_wall_clock_odometry_is_stamped_on_the_service_clock(rig: Rig) -> None:
+    """The loop times itself on perf_counter; its messages carry Unix time, as scans and every other service do."""
+    loop = make_loop(rig)
+    snap = loop.cycle(loop.ticker.now())
+    assert snap is not None and abs(snap.stamp - time.time()) < 1.0
+
+
 def test_a_simulator_restart_starts_a_new_epoch_in_the_loop(rig: Rig) -> None:
     """The sim clock jumps back to 0: snapshots go on at once and a command from the old run moves nothing."""
     from services.drive.loop import SimTicker

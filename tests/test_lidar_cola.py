@@ -25,7 +25,7 @@ from services.lidar.cola import (
     parse_uint,
 )
 from services.lidar.config import LidarConfig
-from services.lidar.convert import first_beam_stamp, to_laserscan
+from services.lidar.convert import to_laserscan
 from services.lidar.telegrams import decode_device_state, decode_method_result, decode_scancfg, decode_scandata
 from services.lidar.watchdog import ScanWatchdog
 
@@ -263,11 +263,53 @@ def test_missing_dist_channel_is_an_error():
         to_laserscan(s, stamp=0, range_min_m=0, range_max_m=20, mount=Pose2D(), intensities=False)
 
 
-def test_first_beam_stamp_uses_the_device_delay_with_wraparound():
+def test_device_clock_stamp_uses_the_device_delay_with_wraparound():
+    from services.lidar.timesync import DeviceClockSync
+
     s = decode_one(build_scandata([1], t_first=0xFFFFF000, t_tx=0x00000F00))  # wrapped: 0x1F00 us later
-    assert first_beam_stamp(10.0, s) == pytest.approx(10.0 - 0x1F00 * 1e-6)
+    sync = DeviceClockSync()
+    assert sync.stamp(10.0, s.time_since_startup_us, s.time_of_transmission_us) == pytest.approx(10.0 - 0x1F00 * 1e-6)
     s = decode_one(build_scandata([1], t_first=0, t_tx=5_000_000))  # implausible 5 s: ignored
-    assert first_beam_stamp(10.0, s) == 10.0
+    assert DeviceClockSync().stamp(10.0, s.time_since_startup_us, s.time_of_transmission_us) == 10.0
+
+
+def _device_scans(n: int, period_s: float = 0.04, delay_us: int = 3000, start_us: int = 0xFFFF0000):
+    """(first-beam, transmission) µs counters of ``n`` scans at ``period_s`` from ``start_us`` (wrapping U32)."""
+    for k in range(n):
+        first = (start_us + round(k * period_s * 1e6)) % 2**32
+        yield k, first, (first + delay_us) % 2**32
+
+
+def test_device_clock_stamps_stay_unique_when_receive_times_stall_or_burst():
+    """36 scans received while the service clock stood still (a stalled sim clock, or a burst read at once) keep
+    their device spacing: stamps strictly increase and stay within 2 ms of the first beam's true time."""
+    from services.lidar.timesync import DeviceClockSync
+
+    sync = DeviceClockSync()
+    offset_s, latency_s = 100.0, 0.004
+    stamps, truths = [], []
+    for k, first, tx in _device_scans(400):
+        true_first_s = offset_s + k * 0.04
+        receive_s = true_first_s + 0.003 + latency_s * (1 + math.sin(k))  # delivery jitter 0..8 ms
+        if 150 <= k < 186:
+            receive_s = offset_s + 150 * 0.04  # the clock stalled: 36 scans received "at once"
+        stamps.append(sync.stamp(receive_s, first, tx))
+        truths.append(true_first_s)
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    errors = np.abs(np.array(stamps) - np.array(truths) - latency_s)
+    assert errors[20:].max() < 0.002, errors[20:].max()
+    assert sync.resets == 0
+
+
+def test_device_clock_restarts_its_estimate_after_a_device_reboot():
+    from services.lidar.timesync import DeviceClockSync
+
+    sync = DeviceClockSync()
+    for k, first, tx in _device_scans(50, start_us=50_000_000):
+        sync.stamp(10.0 + k * 0.04 + 0.003, first, tx)
+    # the device rebooted: its counters start again near 0 while the service clock went on
+    stamp = sync.stamp(30.0 + 0.003, 1000, 4000)
+    assert sync.resets == 1 and stamp == pytest.approx(30.0)
 
 
 # --------------------------------------------------------------------------- watchdog and config

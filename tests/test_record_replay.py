@@ -7,6 +7,7 @@ the FR079 replay into SLAM are ``long`` (``tests/test_record_replay_long.py``).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,6 @@ from rosbags.typesys import Stores, get_typestore
 
 from proto import codec
 from proto import messages as m
-from services.common.se2 import quaternion_to_yaw
 from services.launch.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
 
 # a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores
@@ -33,8 +33,10 @@ def _stamp(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
 
 
-def _yaw(q) -> float:
-    return quaternion_to_yaw(q.x, q.y, q.z, q.w)
+def _is_yaw_quaternion(q, theta: float) -> bool:
+    """``q`` is exactly the REP-103 rotation about z by ``theta``: (0, 0, sin θ/2, cos θ/2), every field bit-equal
+    (a float64 survives CDR unchanged, so a recorded quaternion is the one computed from the published yaw)."""
+    return (q.x, q.y, q.z, q.w) == (0.0, 0.0, math.sin(theta / 2.0), math.cos(theta / 2.0))
 
 
 def _by_stamp(t: type, payloads: list[bytes]) -> dict[int, list]:
@@ -90,7 +92,7 @@ def check_bag_matches_published(bag: Path, published: dict[str, list[bytes]]) ->
                 p, v = msg.pose.pose, msg.twist.twist
                 assert any(
                     (p.position.x, p.position.y) == (w.pose.x, w.pose.y)
-                    and abs(_yaw(p.orientation) - w.pose.theta) < 1e-9
+                    and _is_yaw_quaternion(p.orientation, w.pose.theta)
                     and (v.linear.x, v.linear.y, v.angular.z) == (w.twist.vx, w.twist.vy, w.twist.wz)
                     and (msg.header.frame_id, msg.child_frame_id) == (w.frame, w.child_frame)
                     for w in _published_at(odoms, t)), f"odom at {t} s differs from every odom published then"
@@ -108,7 +110,8 @@ def check_bag_matches_published(bag: Path, published: dict[str, list[bytes]]) ->
                     if not poses:
                         unseen[conn.topic] += 1
                         continue
-                    assert any((tr.x, tr.y) == pose[:2] and abs(_yaw(tf.transform.rotation) - pose[2]) < 1e-9
+                    assert any((tr.x, tr.y, tr.z) == (*pose[:2], 0.0)
+                               and _is_yaw_quaternion(tf.transform.rotation, pose[2])
                                for pose in poses), f"{parent}->{child} at {t} s differs from what was published"
     print(f"{bag.name}: {counts} messages, not seen by the harness {unseen}")
     for topic, n in unseen.items():

@@ -89,6 +89,9 @@ class WallTicker:
     def __init__(self, hz: float, spin_s: float = 0.0003) -> None:
         self.period_s = 1.0 / hz
         self.spin_s = max(0.0, spin_s)
+        #: ``perf_counter`` + this = Unix time (the service clock): messages are stamped on the clock every other
+        #: service reads, the loop times itself on ``perf_counter``
+        self.stamp_offset_s = time.time() - time.perf_counter()
         self._next: float | None = None
         self._poke = threading.Event()
         self.overruns = 0
@@ -132,6 +135,7 @@ class SimTicker:
 
     def __init__(self, hz: float) -> None:
         self.period_s = 1.0 / hz
+        self.stamp_offset_s = 0.0  #: ticker time is the sim clock's time
         self._now = 0.0
         self._started = False
         self._next: float | None = None
@@ -181,6 +185,25 @@ class SimTicker:
             return now, True
 
 
+# --------------------------------------------------------------------------- publishing
+
+
+def publish_due(now: float, next_publish: float, published_stamp: float) -> bool:
+    """Whether a cycle at ``now`` publishes: its time is due and later than the last published stamp.
+
+    One message per stamp: when the clock did not advance between cycles (a sim clock step longer than the loop
+    period, or an extra cycle woken by a command), the odometry integrated since is published with the next, later
+    stamp, never under the stamp already sent with another pose.
+    """
+    return now >= next_publish and now > published_stamp
+
+
+def next_publish_time(now: float, next_publish: float, period_s: float) -> float:
+    """The next publish deadline after publishing at ``now``: on the ``period_s`` grid, re-anchored at ``now`` when
+    the clock jumped past it (a late cycle publishes at the next one rather than in a burst)."""
+    return max(next_publish + period_s, now) if math.isfinite(next_publish) else now + period_s
+
+
 # --------------------------------------------------------------------------- the loop
 
 
@@ -203,7 +226,7 @@ class LoopSettings:
 class Snapshot:
     """What the loop publishes: everything the node needs for ``odom`` and ``wheels``."""
 
-    stamp: float
+    stamp: float  #: s on the service clock (Unix or sim time) of the cycle that read the feedback; unique per snapshot
     result: CommandResult
     feedback: tuple[ModuleFeedback, ...]
     measured_angles: tuple[float, ...]
@@ -258,6 +281,7 @@ class DriveLoop:
         self._last_now: float | None = None
         self._last_periodic: float | None = None
         self._next_publish = -math.inf
+        self._published_stamp = -math.inf  #: ticker time of the last published snapshot (stamps strictly increase)
         self._imu_rate: tuple[float, float] | None = None  # (yaw rate rad/s, monotonic time)
         self.last_snapshot: Snapshot | None = None
         self._last_sent: tuple | None = None
@@ -407,9 +431,9 @@ class DriveLoop:
                 dyaw = self._imu_rate[0] * dt
             self.odometry.update(feedback, dyaw, s.imu_yaw_weight)
 
-        if now >= self._next_publish:
-            self._next_publish = max(self._next_publish + s.publish_period_s, now) if \
-                math.isfinite(self._next_publish) else now + s.publish_period_s
+        if publish_due(now, self._next_publish, self._published_stamp):
+            self._next_publish = next_publish_time(now, self._next_publish, s.publish_period_s)
+            self._published_stamp = now
             snap = self._snapshot(now, result, feedback, angles)
             self.last_snapshot = snap
             if self.publish is not None:
@@ -428,7 +452,7 @@ class DriveLoop:
             self._cmd, self._cmd_at = None, -math.inf
         self._released_at = -math.inf
         self._last_now = self._last_periodic = None
-        self._next_publish = self._last_sent_at = -math.inf
+        self._next_publish = self._last_sent_at = self._published_stamp = -math.inf
 
     def _check_flags(self, feedback: list[ModuleFeedback], now: float) -> str:
         faults = []
@@ -451,8 +475,8 @@ class DriveLoop:
         speeds = tuple(u.rpm_to_mps(f.traction_rpm) for u, f in zip(self.controller.units, feedback))
         fault = self.link_fault if not self.link_ok else self.flag_fault
         return Snapshot(
-            stamp=now, result=result, feedback=tuple(feedback), measured_angles=tuple(angles),
-            measured_speeds=speeds, pose=(odo.pose.x, odo.pose.y, odo.pose.theta),
+            stamp=now + self.ticker.stamp_offset_s, result=result, feedback=tuple(feedback),
+            measured_angles=tuple(angles), measured_speeds=speeds, pose=(odo.pose.x, odo.pose.y, odo.pose.theta),
             twist=odo.twist if self.link_ok else ZERO_TWIST, residual_mps=odo.residual_mps, enabled=self.enabled,
             estopped=self.estopped, link_ok=self.link_ok, fault=fault, loop_hz=self.stats.hz,
             jitter_p99_ms=self.stats.jitter_p99_ms(), overruns=self.ticker.overruns)

@@ -20,16 +20,6 @@ from services.lidar.telegrams import ScanData
 SICK_FORWARD_DEG = 90.0
 
 
-def first_beam_stamp(receive_stamp_s: float, scan: ScanData, max_delay_s: float = 0.5) -> float:
-    """Stamp of the first beam: the receive time minus the device's first-beam-to-transmission delay.
-
-    The device delay comes from the telegram's two µs counters; an implausible delay (> ``max_delay_s``, e.g. a
-    device clock reset) is ignored and the receive time used as ROS drivers do.
-    """
-    delay = scan.transmission_delay_s
-    return receive_stamp_s - delay if delay <= max_delay_s else receive_stamp_s
-
-
 def to_laserscan(
     scan: ScanData,
     *,

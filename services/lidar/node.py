@@ -1,4 +1,5 @@
-"""Lidar node: LMS111 over CoLa A/TCP -> ``scan`` (LaserScan, frame ``laser``, stamped on the service clock).
+"""Lidar node: LMS111 over CoLa A/TCP -> ``scan`` (LaserScan, frame ``laser``, stamped with the device clock mapped
+onto the service clock, services.lidar.timesync).
 
 Per connection: SetAccessMode -> LMPscancfg (mLMPsetscancfg when frequency/resolution differ) -> LMDscandatacfg ->
 LMCstartmeas -> STlms until 7 -> Run -> ``sEN LMDscandata 1``, then every ``sSN LMDscandata`` becomes a LaserScan.
@@ -28,7 +29,7 @@ from services.lidar.cola import (
     cmd_stream,
 )
 from services.lidar.config import LidarConfig
-from services.lidar.convert import first_beam_stamp, to_laserscan
+from services.lidar.convert import to_laserscan
 from services.lidar.link import ColaLink, LinkLost
 from services.lidar.telegrams import (
     ScanConfig,
@@ -37,6 +38,7 @@ from services.lidar.telegrams import (
     decode_scancfg,
     decode_scandata,
 )
+from services.lidar.timesync import DeviceClockSync
 from services.lidar.watchdog import ScanWatchdog
 
 READY_FOR_MEASUREMENT = 7
@@ -181,6 +183,7 @@ class LidarNode:
     async def _stream(self, link: ColaLink, stop: asyncio.Event) -> None:
         cfg = self.config
         watchdog = ScanWatchdog(cfg.watchdog_timeout_s)
+        device_clock = DeviceClockSync()  # per connection: a reconnect may follow a device reboot
         watchdog.feed(self.clock.now(), time.monotonic())
         poll_s = min(cfg.watchdog_timeout_s / 4.0, 0.25)
         while not stop.is_set():
@@ -189,8 +192,9 @@ class LidarNode:
                 receive = self.clock.now()
                 try:
                     scan = decode_scandata(reply)
-                    msg = to_laserscan(scan, stamp=first_beam_stamp(receive, scan), range_min_m=cfg.range_min_m,
-                                       range_max_m=cfg.range_max_m, mount=self.mount, intensities=cfg.intensities)
+                    stamp = device_clock.stamp(receive, scan.time_since_startup_us, scan.time_of_transmission_us)
+                    msg = to_laserscan(scan, stamp=stamp, range_min_m=cfg.range_min_m, range_max_m=cfg.range_max_m,
+                                       mount=self.mount, intensities=cfg.intensities)
                 except ColaError as exc:
                     self._bad_scan(exc)
                 else:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import signal
 import sys
+import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -78,6 +80,10 @@ def record(settings: ZenohSettings, keys: Keys, output: str | None, names: list[
            quiet: bool = False) -> int:
     """Record ``names`` (None: every topic) into the bag folder ``output`` (None: ``zagv_<date>_<time>``) until
     ``duration_s`` of log time (0: until Ctrl-C); the exit code of ``zagv record`` (2: the folder exists)."""
+    if threading.current_thread() is threading.main_thread():
+        # SIGINT ends the recording (the bag is closed), also when started from a script that ignores SIGINT for its
+        # background jobs (`zagv record & ... kill -INT`): a process inherits the ignore, and Python sets no handler
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     out = Path(output or datetime.now().strftime("zagv_%Y%m%d_%H%M%S"))
     try:
         recorder = BagRecorder(out, robot_id=keys.robot_id, split_bytes=int(split_size_mb * 1e6),
