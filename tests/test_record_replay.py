@@ -7,7 +7,6 @@ the FR079 replay into SLAM are ``long`` (``tests/test_record_replay_long.py``).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from proto import codec
 from proto import messages as m
+from services.common.se2 import yaw_to_quaternion
 from services.launch.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
 
 # a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores
@@ -36,7 +36,7 @@ def _stamp(header) -> float:
 def _is_yaw_quaternion(q, theta: float) -> bool:
     """``q`` is exactly the REP-103 rotation about z by ``theta``: (0, 0, sin θ/2, cos θ/2), every field bit-equal
     (a float64 survives CDR unchanged, so a recorded quaternion is the one computed from the published yaw)."""
-    return (q.x, q.y, q.z, q.w) == (0.0, 0.0, math.sin(theta / 2.0), math.cos(theta / 2.0))
+    return (q.x, q.y, q.z, q.w) == yaw_to_quaternion(theta)
 
 
 def _by_stamp(t: type, payloads: list[bytes]) -> dict[int, list]:
