@@ -107,6 +107,16 @@ def cells_set(mask: np.ndarray, origin: tuple[float, float, float], resolution: 
     return out
 
 
+def beam_rays(poses: np.ndarray, bearings: np.ndarray, mount: Pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The laser's map-frame origin (k,) x and y seen from each of ``poses`` (k, 3) (pose ∘ mount) and the map-frame
+    angle (k, n) of each of n beams."""
+    mx, my, mth = mount
+    th = poses[:, 2]
+    lx = poses[:, 0] + np.cos(th) * mx - np.sin(th) * my
+    ly = poses[:, 1] + np.sin(th) * mx + np.cos(th) * my
+    return lx, ly, (th + mth)[:, None] + bearings[None, :]
+
+
 def log_likelihood(distance_m: np.ndarray, origin: tuple[float, float, float], resolution: float, model: BeamModel,
                    poses: np.ndarray, ranges: np.ndarray, bearings: np.ndarray, mount: Pose,
                    occupied: np.ndarray | None = None, clearance_m: float = 0.05) -> np.ndarray:
@@ -116,11 +126,7 @@ def log_likelihood(distance_m: np.ndarray, origin: tuple[float, float, float], r
     ``clearance_m`` to ``clearance_m`` + 1.5 cells short of it, crosses an occupied cell went through a wall to get
     there and scores as a beam ending ``max_dist_m`` from any (the distance field alone, measured from both faces
     of a wall, scores a pose shifted by a wall's thickness as well as the true one)."""
-    mx, my, mth = mount
-    th = poses[:, 2]
-    lx = poses[:, 0] + np.cos(th) * mx - np.sin(th) * my
-    ly = poses[:, 1] + np.sin(th) * mx + np.cos(th) * my
-    ga = (th + mth)[:, None] + bearings[None, :]
+    lx, ly, ga = beam_rays(poses, bearings, mount)
     ex = lx[:, None] + ranges[None, :] * np.cos(ga)
     ey = ly[:, None] + ranges[None, :] * np.sin(ga)
     d = interpolated_distance(distance_m, origin, resolution, ex, ey, model.max_dist_m)

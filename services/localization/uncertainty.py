@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.localization.refine import interpolated_distance
+from services.localization.refine import beam_rays, interpolated_distance
 
 Pose = tuple[float, float, float]
 
@@ -69,11 +69,7 @@ def scan_information(distance_m: np.ndarray, origin: tuple[float, float, float],
     steps = np.array([p.step_m, p.step_m, p.step_rad])
     base = np.asarray(pose, dtype=np.float64)
     poses = np.vstack([base] + [base + sign * steps[i] * np.eye(3)[i] for i in range(3) for sign in (1.0, -1.0)])
-    mx, my, mth = mount
-    th = poses[:, 2]
-    lx = poses[:, 0] + np.cos(th) * mx - np.sin(th) * my
-    ly = poses[:, 1] + np.sin(th) * mx + np.cos(th) * my
-    ga = (th + mth)[:, None] + bearings[None, :]
+    lx, ly, ga = beam_rays(poses, bearings, mount)
     ex = lx[:, None] + ranges[None, :] * np.cos(ga)
     ey = ly[:, None] + ranges[None, :] * np.sin(ga)
     d = interpolated_distance(distance_m, origin, resolution, ex, ey, math.nan)  # beyond the map: no gradient
