@@ -3,7 +3,8 @@
 CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
 (beams from -90° at CARMEN's ``carmen_laser_get_angle_increment``: 1° for 180 and 181 beams, 0.5° for 360 and 361,
 0.25° for 400 and 401, else spread evenly over 180°; a 180- or 360-beam scan thus ends one step short of +90°; the
-laser sits ``PARAM robot_frontlaser_offset`` m ahead of the robot, 0 when absent) and
+laser sits ``PARAM robot_frontlaser_offset`` m ahead of the robot, 0 when absent; FLASER gives no range limit, so the
+log's "no return" code, its largest reading when that recurs, is found from the readings: ``no_return_range_m``) and
 ``ROBOTLASER1 type start_angle fov resolution max_range
 accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
 tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp`` (the mount is
@@ -26,6 +27,12 @@ import numpy as np
 from services.common.se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
+#: a log's largest reading is the laser's "no return" code when it recurs: at least this many times and this fraction
+#: of all readings (the SICK LMS reports nothing hit as its range limit, 8.191 / 32.767 / 81.91 m by mode)
+NO_RETURN_MIN_COUNT = 10
+NO_RETURN_MIN_FRACTION = 1e-4
+#: readings within this fraction below the largest one belong to the no-return code (it may be written 51.14 / 51.15)
+NO_RETURN_BAND = 0.02
 #: a laser further than this from the robot frame is a malformed record, not a mount
 MAX_MOUNT_OFFSET_M = 2.0
 
@@ -62,6 +69,22 @@ def flaser_angle_increment_rad(n_beams: int) -> float:
         if n_beams in (full, full - 1):
             return float(np.radians(step_deg))
     return float(np.pi / max(n_beams - 1, 1))
+
+
+def no_return_range_m(ranges_m: np.ndarray) -> float | None:
+    """The reading an FLASER log writes for "no return", or None when it has none: the smallest centimetre value
+    within ``NO_RETURN_BAND`` below the log's largest reading that occurs at least ``NO_RETURN_MIN_COUNT`` times and
+    on ``NO_RETURN_MIN_FRACTION`` of all readings. FLASER lines do not give the scanner's range limit, and treating
+    that code as a hit puts a phantom wall at the range limit that moves with the robot (it holds the scan match
+    back to the prediction)."""
+    ranges_m = np.asarray(ranges_m, float)
+    ranges_m = ranges_m[np.isfinite(ranges_m)]
+    if len(ranges_m) == 0:
+        return None
+    top = float(ranges_m.max())
+    values, counts = np.unique(np.round(ranges_m[ranges_m >= top * (1.0 - NO_RETURN_BAND)], 2), return_counts=True)
+    repeated = values[counts >= max(NO_RETURN_MIN_COUNT, NO_RETURN_MIN_FRACTION * len(ranges_m))]
+    return float(repeated.min()) if len(repeated) else None
 
 
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
@@ -105,6 +128,11 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
             raise ValueError(f"CARMEN ROBOTLASER1 laser pose is {np.hypot(mount[0], mount[1]):.1f} m from the robot "
                              f"pose: not a mount offset (more than {MAX_MOUNT_OFFSET_M} m)")
         sensor_pose = mount
+    flaser = [s for s in scans if s.max_range_m == CARMEN_MAX_RANGE_M]
+    code = no_return_range_m(np.concatenate([s.ranges_m for s in flaser])) if flaser else None
+    if code is not None:
+        for scan in flaser:  # readings from 5 mm below the code count as no return (scan_to_points keeps r < max)
+            scan.max_range_m = code - 0.005
     stamps = np.array([s.stamp_s for s in scans])
     from_log = bool(len(stamps) < 2 or np.all(np.diff(stamps) > 0))
     if not from_log:

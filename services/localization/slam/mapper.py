@@ -63,7 +63,8 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     resolution_m: float = 0.05
     levels: int = 3
-    match_max_range_m: float = 20.0
+    #: far walls fix the heading best (a hall's far side); the log's "no return" readings are no hits (``logs.py``)
+    match_max_range_m: float = 40.0
     map_max_range_m: float = 25.0
     point_spacing_m: float = 0.05
     keyframe_distance_m: float = 0.5
