@@ -86,7 +86,7 @@ def test_no_return_readings_are_no_phantom_wall_that_holds_the_match_back():
     lines = _flaser_log(world, truth, odom, range_max_m=NO_RETURN_M, no_return_m=NO_RETURN_M)
     dropped = _final_error_m(lines)
     as_hits = _final_error_m(lines, max_range_m=CARMEN_MAX_RANGE_M)
-    assert dropped < 0.3, dropped  # 0.19 m: the odometry prior keeps part of the scale error (see the bench notes)
+    assert dropped < 0.3, dropped  # 0.19 m: the odometry prior keeps part of the scale error
     assert as_hits > 0.6 and as_hits > 3 * dropped, (dropped, as_hits)
 
 
