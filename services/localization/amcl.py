@@ -201,7 +201,8 @@ def _surface_distance(surface: np.ndarray, resolution: float, max_dist: float, l
     d = ndimage.distance_transform_edt(~surface) * resolution
     if less_half_cell:
         d = np.maximum(d - 0.5 * resolution, 0.0)
-    return np.minimum(d, max_dist)
+    clipped: np.ndarray = np.minimum(d, max_dist)
+    return clipped
 
 
 class LikelihoodField:
@@ -638,7 +639,8 @@ class ParticleFilter:
             weights = sums + 1.0
         cumulative = np.cumsum(weights)
         picks = np.searchsorted(cumulative, self.rng.random(k) * cumulative[-1], side="right")
-        return poses[np.minimum(picks, candidates - 1)]
+        picked: np.ndarray = poses[np.minimum(picks, candidates - 1)]
+        return picked
 
     def resample(self) -> int:
         """Low-variance resampling with KLD-sampled population size and random injection; returns the new size."""
@@ -755,7 +757,8 @@ def cluster_labels(poses: np.ndarray) -> np.ndarray:
             parent[max(ra, rb)] = min(ra, rb)
     roots = np.array([root(i) for i in range(count + 1)])
     _, compact = np.unique(roots, return_inverse=True)
-    return compact[labels[bx, by, bt]] - (1 if count > 0 else 0)
+    cluster_of: np.ndarray = compact[labels[bx, by, bt]] - (1 if count > 0 else 0)
+    return cluster_of
 
 
 @dataclass
