@@ -63,10 +63,13 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
 
     resolution_m: float = 0.05
     levels: int = 3
-    #: 40 m lets a hall's far walls fix the heading (corrected CARMEN logs, ATE: edmonton 0.841 -> 0.648 m, orebro
-    #: 0.159 -> 0.152, FR079 0.0496 -> 0.0482) but costs offices a little (MIT CSAIL 0.0341 -> 0.0349, freiburg-101
-    #: 0.077 -> 0.085, seattle 0.129 -> 0.132); a log's "no return" readings are never hits either way (``logs.py``)
-    match_max_range_m: float = 20.0
+    #: far walls fix the heading in halls; weighed down beyond ``match_full_weight_range_m`` so offices keep their
+    #: accuracy (corrected CARMEN logs, ATE vs 20 m unweighted: edmonton 0.841 -> 0.621 m, aces 0.236 -> 0.208, csail
+    #: 0.125 -> 0.112, fhw 0.240 -> 0.215; MIT CSAIL relations 0.0341 -> 0.0341, FR079 0.0496 -> 0.0488). A log's
+    #: "no return" readings are never hits (``logs.no_return_range_m``)
+    match_max_range_m: float = 40.0
+    #: scan points further than this weigh (r₀/r)² in the match: a point's position error grows with its range
+    match_full_weight_range_m: float = 20.0
     map_max_range_m: float = 25.0
     point_spacing_m: float = 0.05
     keyframe_distance_m: float = 0.5
@@ -204,6 +207,7 @@ class GraphSlam:
         self.degenerate_matches = 0
         self._unmatched_m = 0.0
         self._unmatched_rad = 0.0
+        self._sensor_origin = np.zeros(2)
         c = self.config
         self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
                                     1 / c.odom_prior_sigma_theta_rad**2])
@@ -284,7 +288,9 @@ class GraphSlam:
         turn_rad = float(wrap_angle(step[2]))
         dist = float(np.hypot(step[0], step[1]))
         points = self._seen_points(points, predicted)
-        result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior)
+        weights = self._point_weights(points)
+        result = refine(self._submap, points, predicted, prior_pose=predicted, prior_information=self._odom_prior,
+                        point_weights=weights)
         if result.score >= max(c.min_match_score, c.rescue_below_score) and abs(turn_rad) < c.fast_turn_rad:
             return self._constrained(self._unless_odometry_outlier(result, points, predicted, step), predicted,
                                      points), True
@@ -298,7 +304,8 @@ class GraphSlam:
                                         theta_step_rad=0.02, n_best=3)
         best = result
         for _, pose in candidates:
-            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step))
+            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step),
+                           point_weights=weights)
             if trial.score > best.score + 0.02:
                 best = trial
         if best.score >= c.min_match_score:
@@ -323,7 +330,7 @@ class GraphSlam:
         assert self._submap is not None
         if self._within_odometry(result.pose, predicted, step, self.config.odometry_outlier_sigma):
             return result
-        free = refine(self._submap, points, result.pose)
+        free = refine(self._submap, points, result.pose, point_weights=self._point_weights(points))
         if free.score < result.score:
             return result
         curvature = translation_curvature(self._submap.levels[0], points, free.pose)
@@ -333,6 +340,14 @@ class GraphSlam:
             return result
         self.odometry_outliers += 1
         return free
+
+    def _point_weights(self, points: np.ndarray) -> np.ndarray:
+        """Weight of each scan point in the match: 1 up to ``match_full_weight_range_m`` r₀ from the laser, (r₀/r)²
+        beyond (a point's position error, from beam width and angle step, grows with its range r)."""
+        full_m = self.config.match_full_weight_range_m
+        ranges = np.hypot(points[:, 0] - self._sensor_origin[0], points[:, 1] - self._sensor_origin[1])
+        weights: np.ndarray = np.minimum(1.0, (full_m / np.maximum(ranges, 1e-9)) ** 2)
+        return weights
 
     def _within_odometry(self, pose: np.ndarray, predicted: np.ndarray, step: np.ndarray, sigmas: float) -> bool:
         """Whether ``pose`` lies within ``sigmas`` standard deviations of the odometry prediction (Mahalanobis
@@ -392,6 +407,7 @@ class GraphSlam:
         c = self.config
         odom_pose = np.asarray(odom_pose, float)
         origin = np.zeros(2) if sensor_origin_xy_m is None else np.asarray(sensor_origin_xy_m, float)
+        self._sensor_origin = origin
         ranges = np.hypot(points[:, 0] - origin[0], points[:, 1] - origin[1])
         match_points = decimate(points[ranges < c.match_max_range_m], c.point_spacing_m)
         map_points = points[ranges < c.map_max_range_m]

@@ -66,13 +66,16 @@ def translation_sharpness(grid: LikelihoodGrid, points: np.ndarray, pose: np.nda
 def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndarray, *,
            iterations_per_level: int = 6, field_sigma: float = 0.3,
            prior_pose: np.ndarray | None = None, prior_information: np.ndarray | None = None,
-           min_step: float = 5e-4, max_damping_tries: int = 5) -> MatchResult:
+           min_step: float = 5e-4, max_damping_tries: int = 5,
+           point_weights: np.ndarray | None = None) -> MatchResult:
     """Gauss-Newton from the coarsest to the finest level (see the module docstring) with Levenberg-Marquardt
     damping: a step that raises the cost is re-solved from (H + λ·diag(H)) with λ = 0.1, 1, 10, ... (up to
     ``max_damping_tries`` times) and λ shrinks tenfold after an accepted step. Near a wall's crest ∇M vanishes, so
     JᵀJ underestimates the curvature and plain Gauss-Newton overshoots across the wall; damping shortens the step
-    there without giving up the direction along which the scan still pulls (a corridor's axis)."""
+    there without giving up the direction along which the scan still pulls (a corridor's axis). ``point_weights``
+    (N,) scale each point's residual term (1 when not given)."""
     pose = np.asarray(initial_pose, float).copy()
+    weight = np.ones(len(points)) if point_weights is None else np.asarray(point_weights, float)
     inv_var = 1.0 / field_sigma**2
     has_prior = prior_information is not None and prior_pose is not None
 
@@ -81,7 +84,7 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
         world = transform_points(at, points)
         value, grad = grid.value_and_gradient(world)
         residual = 1.0 - value
-        cost = inv_var * float(residual @ residual)
+        cost = inv_var * float(residual @ (weight * residual))
         diff = None
         if has_prior:
             diff = np.asarray(prior_pose, float) - at
@@ -98,8 +101,8 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
             jac[:, 0] = grad[:, 0]
             jac[:, 1] = grad[:, 1]
             jac[:, 2] = -grad[:, 0] * (world[:, 1] - pose[1]) + grad[:, 1] * (world[:, 0] - pose[0])
-            hessian = inv_var * (jac.T @ jac)
-            gradient = inv_var * (jac.T @ residual)
+            hessian = inv_var * ((jac.T * weight) @ jac)
+            gradient = inv_var * ((jac.T * weight) @ residual)
             system = hessian + np.eye(3) * 1e-6
             if has_prior and prior_information is not None:
                 system += prior_information
