@@ -148,6 +148,9 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     fit_window: int = 20
     confirm_exclude_m: float = 1.0
     confirm_exclude_rad: float = 0.5
+    #: half of the search's candidates lie within this distance (m) of the pose: a repetitive building (a row of
+    #: bays, offices, shelves) repeats itself next door first, and a large map leaves the neighbourhood sparse
+    confirm_near_m: float = 15.0
     #: rivals kept from one confirmation check to the next (carried by odometry, climbed again on each scan)
     confirm_rivals: int = 16
 
@@ -179,7 +182,7 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "confirm_updates": self.confirm_updates >= 0, "confirm_margin": self.confirm_margin >= 0,
             "fit_drop": self.fit_drop >= 0, "fit_window": self.fit_window >= 1,
             "confirm_rivals": self.confirm_rivals >= 0, "confirm_exclude_m": self.confirm_exclude_m > 0,
-            "confirm_exclude_rad": self.confirm_exclude_rad > 0,
+            "confirm_exclude_rad": self.confirm_exclude_rad > 0, "confirm_near_m": self.confirm_near_m >= 0,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -389,6 +392,21 @@ class ParticleFilter:
         x, y = self.grid.cell_to_world(cols[pick] + jitter[:, 0] - 0.5, rows[pick] + jitter[:, 1] - 0.5)
         out[:, 0] = x
         out[:, 1] = y
+        out[:, 2] = self.rng.uniform(-math.pi, math.pi, size=k)
+
+    def _random_poses_near(self, out: np.ndarray, center: tuple[float, float, float], radius_m: float) -> None:
+        """Fill ``out`` (k x 3) with poses uniform over the free cells within ``radius_m`` of ``center`` (any
+        heading); over all free space when none is that close."""
+        cols, rows = self._free_cells
+        x, y = self.grid.cell_to_world(cols, rows)
+        near = np.nonzero((x - center[0]) ** 2 + (y - center[1]) ** 2 <= radius_m * radius_m)[0]
+        k = out.shape[0]
+        if near.size == 0 or k == 0:
+            self._random_poses(out)
+            return
+        pick = near[self.rng.integers(0, near.size, size=k)]
+        jitter = self.rng.random((k, 2)) - 0.5
+        out[:, 0], out[:, 1] = self.grid.cell_to_world(cols[pick] + jitter[:, 0], rows[pick] + jitter[:, 1])
         out[:, 2] = self.rng.uniform(-math.pi, math.pi, size=k)
 
     def _set_uniform_weights(self, n: int) -> None:
@@ -719,16 +737,19 @@ class ParticleFilter:
         return cur, best
 
     def best_alternative(self, pose: tuple[float, float, float], exclude_m: float, exclude_rad: float,
-                         candidates: int, keep: int = 16, seeds: np.ndarray | None = None
+                         candidates: int, keep: int = 16, seeds: np.ndarray | None = None, near_m: float = 0.0
                          ) -> tuple[np.ndarray, np.ndarray]:
         """Other poses for the last scan, away from ``pose`` (farther than ``exclude_m``, or turned by more than
-        ``exclude_rad``): the ``keep`` most likely of ``candidates`` uniform poses over free space, plus ``seeds``
+        ``exclude_rad``): the ``keep`` most likely of ``candidates`` uniform poses over free space (half of them
+        within ``near_m`` of ``pose`` when > 0), plus ``seeds``
         (k x 3), all hill-climbed (``climb``). Returns those that stay away, most likely first, with their
         log-likelihoods."""
         if self._last_beams is None:
             return np.zeros((0, 3)), np.zeros(0)
         cand = np.empty((max(candidates, 0), 3))
         self._random_poses(cand)
+        if near_m > 0.0:  # half of them near the pose: a repetitive building repeats itself next door first
+            self._random_poses_near(cand[: candidates // 2], pose, near_m)
         if candidates > keep:
             ll = self.scan_log_likelihood(cand)
             cand = cand[np.argpartition(-ll, keep - 1)[:keep]]
@@ -1222,7 +1243,8 @@ class Amcl:
         if self._track_map_odom is not None:  # the track held before the loss, where odometry carried it
             seeds.append(np.array([compose(self._track_map_odom, self.pf_odom_pose)]))
         rivals, rivals_ll = pf.best_alternative(hypothesis, p.confirm_exclude_m, p.confirm_exclude_rad,
-                                                p.global_localization_particles, seeds=np.vstack(seeds))
+                                                p.global_localization_particles, seeds=np.vstack(seeds),
+                                                near_m=p.confirm_near_m)
         # the best rivals ride along with odometry: a pose found once keeps competing on the next scans
         self._rivals, self._rivals_odom = rivals[:p.confirm_rivals], self.pf_odom_pose
         if rivals_ll.size == 0:
