@@ -400,7 +400,7 @@ class LocalizationNode:
         if not (0 <= c < self.grid.width and 0 <= r < self.grid.height):
             return Reply(ok=False, message=f"initial pose ({p.x:.3f}, {p.y:.3f}) lies outside the map")
         try:
-            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov)
+            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov, stamp_s=self.ctx.clock.now())
         except ValueError as exc:
             return Reply(ok=False, message=str(exc))
         self._localizing_from((p.x, p.y, p.theta))
@@ -412,7 +412,7 @@ class LocalizationNode:
         if (problem := self._no_map()) is not None:
             return problem
         assert self.amcl is not None
-        self.amcl.global_localization()
+        self.amcl.global_localization(stamp_s=self.ctx.clock.now())
         self._localizing_from(None)
         self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
         reply = Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")
