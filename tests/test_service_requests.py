@@ -10,7 +10,13 @@ from proto import codec
 from proto import messages as m
 from services.common.service_events import ServiceEventLog, event_topic, query_of
 from services.recorder.bag import BagRecorder
-from services.recorder.service_requests import RecordedRequest, RequestSchedule, collect, recorded_requests
+from services.recorder.service_requests import (
+    RecordedRequest,
+    RequestSchedule,
+    collect,
+    recorded_requests,
+    replay_payload,
+)
 from services.recorder.source import BagSource
 
 TOPIC = "localization/nomotion/_service_event"
@@ -100,3 +106,18 @@ def test_recorded_events_survive_the_bag_and_become_requests(tmp_path: Path) -> 
         reqs = recorded_requests(src, src.start_ns, src.end_ns)
         assert not src.problems
     assert reqs == [RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), int(0.16e9), "scan", 0.2)]
+
+
+def test_a_request_that_names_its_scan_is_issued_again_for_the_scan_it_was_served_on() -> None:
+    """An initial pose served live on the scan stamped 12.34 s is issued again with that stamp, so that the replayed
+    filter is re-initialised on the same scan; requests without such a field, or not served on a scan, as recorded."""
+    pose = m.InitialPoseRequest(pose=m.Pose2D(x=1.0, y=2.0, theta=0.5), covariance=[0.01] * 9)
+    served = RecordedRequest("localization/initial_pose", 1, codec.encode(pose), 100, "scan", 12.34)
+    again = codec.decode_as(m.InitialPoseRequest, replay_payload(served))
+    assert again.at_scan_stamp == 12.34 and (again.pose, again.covariance) == (pose.pose, pose.covariance)
+    unserved = RecordedRequest("localization/initial_pose", 2, codec.encode(pose), 100)
+    assert replay_payload(unserved) == unserved.request
+    nomotion = RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), 100, "scan", 12.34)
+    assert replay_payload(nomotion) == nomotion.request
+    garbled = RecordedRequest("localization/initial_pose", 3, b"\xc1", 100, "scan", 12.34)
+    assert replay_payload(garbled) == b"\xc1"  # the service refuses it with the reason

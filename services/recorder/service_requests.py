@@ -10,6 +10,11 @@ them into ``RecordedRequest`` s; ``RequestSchedule.due`` says which to issue bef
   service's ``request_received`` before going on);
 - any other request (no response recorded, or its input topic is not played) before the first message logged at or
   after its ``request_received`` event, as rosbag2 does.
+
+A request whose type says on which scan it is to take effect (``at_scan_stamp``: ``localization/initial_pose``) is
+issued again with the stamp of the scan it was served on live (``replay_payload``): the service applies it just
+before that scan however many earlier scans are still on their way, which issuing it at the right point of the
+stream alone does not guarantee.
 """
 
 from __future__ import annotations
@@ -17,6 +22,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass
 
+import msgspec
+
+from proto import codec
 from proto.messages import ServiceEvent
 from services.common.service_events import query_of
 from services.recorder.rosconv import stamp_to_ns
@@ -32,6 +40,19 @@ class RecordedRequest:
     log_ns: int
     input_topic: str = ""
     input_stamp_s: float = 0.0
+
+
+def replay_payload(req: RecordedRequest) -> bytes:
+    """The payload to issue ``req`` again with: its recorded request, with ``at_scan_stamp`` set to the scan it was
+    served on when its type has that field (and it was served on a scan)."""
+    req_type, _ = codec.query_types(req.query)
+    if req.input_topic != "scan" or req.input_stamp_s <= 0 or "at_scan_stamp" not in req_type.__struct_fields__:
+        return req.request
+    try:
+        msg = codec.decode_as(req_type, req.request)
+    except codec.ProtoDecodeError:  # issued as recorded: the service refuses it with the reason
+        return req.request
+    return codec.encode(msgspec.structs.replace(msg, at_scan_stamp=req.input_stamp_s))
 
 
 def collect(events: Iterable[tuple[int, str, ServiceEvent]]) -> list[RecordedRequest]:
