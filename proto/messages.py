@@ -392,6 +392,15 @@ class InitialPoseRequest(Message):
     at_scan_stamp: float = 0.0
 
 
+class NoMotionRequest(Message):
+    """Update the localization filter without motion and refine at rest (``localization/nomotion``).
+    ``at_scan_stamp`` (s): 0 runs it on the next scan the filter takes after the ones already waiting; else on the
+    first scan stamped at or after it (``zagv replay``: the scan a recorded request ran on). An ``Empty`` request
+    encodes as this one's defaults."""
+
+    at_scan_stamp: float = 0.0
+
+
 #: a map name ``localization/save_map`` accepts: 1-64 letters, digits, '_', '-' or '.', no path, not starting with
 #: '.' or '-'. ``\Z``, not ``$``: ``$`` also matches before a trailing newline.
 MAP_NAME = re.compile(r"\A[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}\Z")

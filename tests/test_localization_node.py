@@ -19,6 +19,7 @@ from proto.messages import (
     InitialPoseRequest,
     LaserScan,
     LocalizationUpdate,
+    NoMotionRequest,
     OccupancyGrid,
     Odometry,
     Pose2D,
@@ -206,6 +207,14 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
                        message="no initial_pose service events")
         assert (pose_events[1].input_topic, pose_events[1].input_stamp) == ("scan", pytest.approx(at_s, abs=1e-9))
         assert codec.decode_as(Reply, pose_events[1].response).ok
+        # ... and so is an update at rest for a given scan
+        at_s = robot2.stamp + 0.2
+        asked = asyncio.ensure_future(client.query("localization/nomotion", NoMotionRequest(at_scan_stamp=at_s),
+                                                   timeout_s=10.0))
+        for _ in range(4):
+            await robot2.step(truth[-1])
+        answer = await asked
+        assert answer.ok and answer.pose is not None and answer.pose.stamp == pytest.approx(at_s, abs=1e-9), answer
 
         reply = await client.query("localization/global", Empty())
         assert reply.ok and "particles" in reply.message

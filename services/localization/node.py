@@ -27,6 +27,7 @@ from proto.messages import (
     LocalizationState,
     LocalizationUpdate,
     Message,
+    NoMotionRequest,
     Odometry,
     Pose2D,
     PoseArray,
@@ -122,6 +123,8 @@ class LocalizationNode:
         #: initial poses to set just before the filter runs on the first scan stamped at or after their stamp (ns)
         self._at_scan: list[tuple[int, int, InitialPoseRequest, Reply]] = []  # (ns, sequence, ...)
         self._last_scan_ns: int | None = None  # the stamp of the last scan the filter ran on
+        #: a localization/nomotion request for the first scan stamped at or after this (ns)
+        self._nomotion_at_ns: int | None = None
         self._load_map()
         self._initialise()
         self.node.extra_stats["localization"] = self.stats
@@ -411,6 +414,9 @@ class LocalizationNode:
     def _apply_due(self, scan_ns: int) -> None:
         """Set the scheduled initial poses whose scan (the first stamped at or after theirs) is ``scan_ns``, just
         before the filter runs on it; the scan answers them (response_sent)."""
+        if self._nomotion_at_ns is not None and self._nomotion_at_ns <= scan_ns and self.amcl is not None:
+            self._nomotion_at_ns = None
+            self.amcl.request_nomotion_update(refine=True)
         while self._at_scan and self._at_scan[0][0] <= scan_ns:
             _, sequence, req, scheduled = self._at_scan.pop(0)
             reply = self._set_initial_pose(req)
@@ -464,16 +470,23 @@ class LocalizationNode:
         self._awaiting_scan.append(("localization/global", self._took_effect("localization/global", _req), reply))
         return reply
 
-    async def on_nomotion(self, req: Empty) -> LocalizationUpdate:
-        """Update the filter without motion on the next scan, refine at rest, and answer with the result once it is
-        published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is withdrawn and the answer says so)."""
+    async def on_nomotion(self, req: NoMotionRequest) -> LocalizationUpdate:
+        """Update the filter without motion on the next scan (``at_scan_stamp``: on that scan), refine at rest, and
+        answer with the result once it is published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is
+        withdrawn and the answer says so)."""
         if (problem := self._no_map()) is not None:
             return LocalizationUpdate(ok=False, message=problem.message)
         assert self.amcl is not None
         if not self.initialised:
             return LocalizationUpdate(ok=False,
                                       message="not localized yet: set an initial pose or start global localization")
-        if len(self.scans):  # the waiting scans were taken before the request: it runs on one received after it
+        if not math.isfinite(req.at_scan_stamp) or req.at_scan_stamp < 0:
+            return LocalizationUpdate(ok=False, message=f"at_scan_stamp {req.at_scan_stamp} must be 0 (the next "
+                                                        f"scan) or a scan stamp (s)")
+        at_ns = _ns(req.at_scan_stamp) if req.at_scan_stamp > 0 else None
+        if at_ns is not None and (self._last_scan_ns is None or at_ns > self._last_scan_ns):
+            self._nomotion_at_ns = at_ns  # that scan may still be on its way, or wait in the queue
+        elif len(self.scans):  # the waiting scans were taken before the request: it runs on one received after it
             self._update_after = self.scans.waiting[-1]
         else:
             self.amcl.request_nomotion_update(refine=True)
@@ -512,6 +525,7 @@ class LocalizationNode:
                 self._update_waiters.remove(fut)
             if not self._update_waiters and self.amcl is not None:
                 self._update_after = None
+                self._nomotion_at_ns = None
                 self.amcl.withdraw_nomotion_request()
             return LocalizationUpdate(ok=False, message=f"no scan reached the filter within "
                                                         f"{NOMOTION_ANSWER_TIMEOUT_S:g} s: the update is withdrawn")
