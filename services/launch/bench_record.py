@@ -282,8 +282,9 @@ def replay_speed_factor(bag: Path) -> float:
         time.sleep(1.0)
         bag_s = bag_span_s(bag)
         t0 = time.monotonic()
+        # topics only: with no service listening, each recorded request would wait out --service-timeout
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "--rate", "0", "--quiet",
-                        "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,
+                        "--no-service-requests", "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,
                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         return bag_s / (time.monotonic() - t0)
     finally:
