@@ -25,7 +25,7 @@ LASER_X_M = 0.45
 class Robot:
     """Test-side view of one robot of the fleet: clock, ground truth, scans; streams cmd_vel."""
 
-    def __init__(self, session, rid: str) -> None:  # noqa: ANN001
+    def __init__(self, session, rid: str) -> None:
         self.session, self.keys = session, Keys(rid)
         self.lock = threading.Lock()
         self.sim_now = 0.0
@@ -40,7 +40,7 @@ class Robot:
         ]
         self.cmd = session.declare_publisher(self.keys("cmd_vel"))
 
-    def _sub(self, name: str, t: type, cb):  # noqa: ANN001, ANN202
+    def _sub(self, name: str, t: type, cb):
         key = self.keys(name)
         return self.session.declare_subscriber(key, lambda s: cb(codec.decode_as(t, s.payload.to_bytes(), key)))
 
@@ -68,7 +68,7 @@ class Robot:
 
 @pytest.mark.integration
 @pytest.mark.slow
-def test_two_robots_see_each_other_and_a_push_is_a_contact_both_report(stack_factory) -> None:  # noqa: ANN001
+def test_two_robots_see_each_other_and_a_push_is_a_contact_both_report(stack_factory) -> None:
     # r1 and r2 face each other 2.4 m apart (centres) in the empty room: straight ahead, each laser (0.45 m ahead
     # of its robot's centre) sees the other chassis at 2.4 - 0.63 - 0.45 = 1.32 m; alone it would see a far wall
     stack = stack_factory(services=["sim", "drive", "lidar"], world="empty_room", speed=1.0, robot_id="r1",
@@ -133,7 +133,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.long
-def test_three_robots_cross_the_hall_without_contact(tmp_path) -> None:  # noqa: ANN001
+def test_three_robots_cross_the_hall_without_contact(tmp_path) -> None:
     code, result, text = run_scenario_file(REPO / "scenarios" / "crossing_fleet.toml", tmp_path)
     assert_all_reached_without_contact(code, result, text, 3)
     print(text)
@@ -174,7 +174,7 @@ pose = [19.0, 8.4, 0.0]
 
 
 @pytest.mark.long
-def test_three_robots_in_the_depot_without_contact(tmp_path, shared_dir) -> None:  # noqa: ANN001
+def test_three_robots_in_the_depot_without_contact(tmp_path, shared_dir) -> None:
     depot = shared_dir / "data" / "maps" / "nav2_depot" / "depot.yaml"
     if not depot.is_file():
         pytest.skip(f"the depot map is not in the development data ({depot})")
@@ -186,7 +186,7 @@ def test_three_robots_in_the_depot_without_contact(tmp_path, shared_dir) -> None
 
 
 @pytest.mark.long
-def test_the_later_robot_waits_for_the_narrow_passage(tmp_path) -> None:  # noqa: ANN001
+def test_the_later_robot_waits_for_the_narrow_passage(tmp_path) -> None:
     code, result, text = run_scenario_file(REPO / "scenarios" / "passage_fleet.toml", tmp_path)
     assert result, text[-4000:]
     # never pushing in: no contact whatever else happens; a deadlock would be reported in the result, not hidden

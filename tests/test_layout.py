@@ -181,3 +181,37 @@ def test_no_importlib_in_service_wiring():
             if "importlib" in line and not allowed.match(line) and "importlib.resources" not in line:
                 hits.append(f"{path.relative_to(REPO)}:{k}: {line.strip()}")
     assert not hits, "\n".join(hits)
+
+
+#: top-level modules whose import marks a module as doing I/O (not a pure core): transports, processes, threads, files
+IO_MODULES = frozenset({
+    "zenoh", "asyncio", "socket", "subprocess", "sqlite3", "httpx", "threading", "can", "canopen", "serial", "amqtt",
+    "aiomqtt", "websockets", "foxglove", "mcap", "rosbags", "argparse", "uvicorn", "http", "signal", "os", "shutil",
+    "tempfile",
+})
+
+
+def core_modules() -> list[str]:
+    """Service modules that are pure cores: not a node, entry point or bench, outside the tooling packages, and
+    importing none of ``IO_MODULES`` at any level."""
+    cores = []
+    for path in sorted(SERVICES.rglob("*.py")):
+        rel = path.relative_to(SERVICES).parts
+        if rel[0] in TOOLING or path.name in ("node.py", "__main__.py", "__init__.py") or path.name.startswith("bench"):
+            continue
+        imported = {name.split(".")[0] for _, name in imported_modules(ast.parse(path.read_text()),
+                                                                        module_level_only=False)}
+        if not imported & IO_MODULES:
+            cores.append(module_name(path))
+    return cores
+
+
+def test_every_core_module_is_type_checked_strictly():
+    import tomllib
+
+    overrides = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["mypy"]["overrides"]
+    strict = {m for o in overrides if o.get("disallow_untyped_defs") for m in o["module"]}
+    cores = core_modules()
+    assert "services.localization.amcl" in cores and "services.nav.node" not in cores
+    missing = [m for m in cores if m not in strict]
+    assert not missing, f"pure core modules missing from the strict mypy override in pyproject.toml: {missing}"

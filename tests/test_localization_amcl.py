@@ -213,3 +213,23 @@ def test_reanchor_after_an_odometry_restart_keeps_the_map_pose():
     assert amcl.process((0.0, 0.0, 0.0), beams((2.0, 2.0, 0.0)), mount)
     est = compose(amcl.map_odom, (0.0, 0.0, 0.0))
     assert math.hypot(est[0] - 2.0, est[1] - 2.0) < 0.05 and abs(est[2]) < 0.03
+
+
+def test_scans_taken_before_the_initial_pose_are_ignored():
+    world, grid = room()
+    params = AmclParams(random_seed=3)
+    amcl = Amcl(grid, params)
+    laser = Laser(world)
+    mount = (0.45, 0.0, 0.0)
+
+    def beams(pose):
+        return select_beams(laser.scan(pose, mount), laser.angle_min, laser.angle_increment, 0.05, 20.0, params)
+
+    amcl.set_initial_pose((2.0, 2.0, 0.0), np.diag([0.01, 0.01, 0.01]), stamp_s=10.0)
+    # a scan still in flight from where the robot stood before it was placed (6.5, 3, pi) must not move the filter
+    assert not amcl.process((0.0, 0.0, 0.0), beams((6.5, 3.0, math.pi)), mount, stamp=9.9)
+    assert amcl.stale_scans_ignored == 1 and amcl.updates == 0
+    assert amcl.process((0.0, 0.0, 0.0), beams((2.0, 2.0, 0.0)), mount, stamp=10.05)
+    est = compose(amcl.map_odom, (0.0, 0.0, 0.0))
+    assert math.hypot(est[0] - 2.0, est[1] - 2.0) < 0.05
+

@@ -62,7 +62,7 @@ def test_filter_at_rest_settles_on_the_truth_along_a_hall_ending_in_unknown():
     assert abs(amcl.estimate.pose[0] - truth[0]) < 0.03
 
 
-def _refine(grid: OccupancyMap, truth, start, cov_diag, seed: int):  # noqa: ANN001, ANN202
+def _refine(grid: OccupancyMap, truth, start, cov_diag, seed: int):
     params = AmclParams()
     pf = ParticleFilter(grid, params)
     laser = GridLaser(grid, rng=np.random.default_rng(seed))

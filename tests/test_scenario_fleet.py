@@ -36,7 +36,7 @@ def test_the_fleet_scenarios_load() -> None:
     ('[[goals]]\npose = [1, 1, 0]\n[[robots]]\nid = "a"\nstart = [0, 0, 0]\n[[robots.goals]]\npose = [1, 1, 0]\n',
      "no top-level goals"),
 ])
-def test_bad_robots_tables_are_named(tmp_path, body: str, message: str) -> None:  # noqa: ANN001
+def test_bad_robots_tables_are_named(tmp_path, body: str, message: str) -> None:
     f = tmp_path / "s.toml"
     f.write_text('world = "crossing"\n' + body)
     with pytest.raises(ScenarioError, match=message):
@@ -70,7 +70,7 @@ def test_blocked_goals_and_deadlocks_are_reported() -> None:
     assert "robot r3" in text and "r3: reached 1/2 goals" in text and "contacts between robots 0" in text
 
 
-def test_generate_places_several_robots_apart(tmp_path) -> None:  # noqa: ANN001
+def test_generate_places_several_robots_apart(tmp_path) -> None:
     out = generate_file(tmp_path / "g.toml", world="crossing", n_goals=3, seed=4, robots=3)
     sc = load_scenario(out)
     assert [r.id for r in sc.robots] == ["r1", "r2", "r3"] and all(len(r.goals) == 3 for r in sc.robots)

@@ -58,7 +58,7 @@ def test_the_vda5050_scenario_loads_and_its_orders_validate() -> None:
     ('[vda5050]\nallowed_deviation_xy_m = 0\n', r"vda5050.allowed_deviation_xy_m must be a number in \(0, 10\]"),
     ('[vda5050]\nsequential = "yes"\n', "vda5050.sequential must be true or false"),
 ])
-def test_bad_vda5050_tables_are_named(tmp_path, body: str, message: str) -> None:  # noqa: ANN001
+def test_bad_vda5050_tables_are_named(tmp_path, body: str, message: str) -> None:
     f = tmp_path / "s.toml"
     robot = '[[robots]]\nid = "a"\nstart = [0, 0, 0]\n[[robots.goals]]\npose = [1, 1, 0]\n'
     f.write_text('world = "crossing"\n' + body + ("" if "[[goals]]" in body else robot))
@@ -119,7 +119,7 @@ def test_the_report_gives_figures_per_robot_and_fails_on_any_miss() -> None:
     assert not contact.ok and "contact at 3.0 s: r1 - r2" in format_vda5050_fleet(contact)
 
 
-def test_each_robot_of_a_fleet_gets_its_own_serial_number(tmp_path) -> None:  # noqa: ANN001
+def test_each_robot_of_a_fleet_gets_its_own_serial_number(tmp_path) -> None:
     from services.launch.up import StackPlan, resolve_fleet
 
     plan = StackPlan(run_dir=str(tmp_path), headless=True, robot_count=3, vda5050=True, mqtt_port=1999)

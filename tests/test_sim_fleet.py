@@ -112,7 +112,7 @@ def test_world_robots_table_is_read_and_checked() -> None:
         World.from_dict({**base, "robots": [{"id": "a", "start": [2, 2, 0]}, {"id": "b", "start": [2, 2]}]})
 
 
-def test_launcher_plans_one_simulator_and_a_stack_per_robot(tmp_path) -> None:  # noqa: ANN001
+def test_launcher_plans_one_simulator_and_a_stack_per_robot(tmp_path) -> None:
     import tomllib
 
     from services.launch.fleet import RobotSlot, fleet_slots, parse_robot_arg

@@ -113,7 +113,7 @@ class LoopWatchdog:
                 self._say(f"event loop blocked for {age:.1f} s; health token withdrawn")
                 try:
                     self.on_stall()
-                except Exception as exc:  # noqa: BLE001 - never let the watchdog thread die
+                except Exception as exc:
                     self._say(f"cannot withdraw the health token: {exc}")
             elif age <= self.limits.stall_s and self._stalled:
                 self._stalled = False

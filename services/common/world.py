@@ -30,9 +30,11 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -134,7 +136,7 @@ class World:
         r, c = self.cell_of(x, y)
         r = min(max(r + 1, 0), self._rows_p - 1)
         c = min(max(c + 1, 0), self._cols_p - 1)
-        return r * self._cols_p + c
+        return int(r * self._cols_p + c)
 
     def is_solid(self, x: float, y: float) -> bool:
         """Static raster only; outside the extent is solid."""
@@ -322,7 +324,7 @@ class World:
 
     @classmethod
     def from_rectangles(cls, name: str, resolution_m: float, extent: list[float], free: list[list[float]],
-                        obstacles: list[list[float]], glass: list[list[float]] | None = None, **kwargs) -> World:
+                        obstacles: list[list[float]], glass: list[list[float]] | None = None, **kwargs: Any) -> World:
         x0, y0, x1, y1 = _check_rect(extent, "extent")
         cols = int(round((x1 - x0) / resolution_m))
         rows = int(round((y1 - y0) / resolution_m))
@@ -358,7 +360,7 @@ class World:
         return cls.from_dict(data, str(path))
 
     @classmethod
-    def from_dict(cls, data: dict, source: str = "world") -> World:
+    def from_dict(cls, data: dict[str, Any], source: str = "world") -> World:
         try:
             goals = [Goal(str(g["id"]), _pose3(g["pose"])) for g in data.get("goals", [])]
             dynamic = {}
@@ -438,7 +440,7 @@ def load_world(world: str = "", map_yaml: str = "") -> World:
     return World.load_builtin(world or "corridor")
 
 
-def _robot_entry(raw, k: int, source: str) -> tuple[str, tuple[float, float, float]]:  # noqa: ANN001
+def _robot_entry(raw: object, k: int, source: str) -> tuple[str, tuple[float, float, float]]:
     """One ``[[robots]]`` entry: ``id`` (a key chunk) and ``start`` [x, y, theta] (finite)."""
     if not isinstance(raw, dict) or set(raw) - {"id", "start"} or "id" not in raw or "start" not in raw:
         raise WorldError(f"{source}: robots[{k}] must have exactly `id` and `start` [x, y, theta], got {raw!r}")
@@ -458,7 +460,7 @@ def _pose3(values: list[float]) -> tuple[float, float, float]:
     return x, y, theta
 
 
-def _check_rect(rect, what: str) -> tuple[float, float, float, float]:
+def _check_rect(rect: Iterable[float], what: str) -> tuple[float, float, float, float]:
     try:
         vals = tuple(float(v) for v in rect)
     except (TypeError, ValueError):
@@ -531,4 +533,5 @@ def _ray_rects(x: float, y: float, angles: np.ndarray, rects: np.ndarray, max_ra
     # a beam parallel to a slab gets +-inf there: unbounded inside the slab, a miss outside; 0/0 (nan) is a miss
     hit = tmax >= np.maximum(tmin, 0.0)
     t = np.where(hit, np.maximum(tmin, 0.0), np.inf)
-    return np.minimum(t.min(axis=1), max_range_m)
+    ranges: np.ndarray = np.minimum(t.min(axis=1), max_range_m)
+    return ranges

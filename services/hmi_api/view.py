@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -51,7 +52,8 @@ def flat(arr: np.ndarray, digits: int = 3) -> list[float | None]:
     """A float array as a flat list with NaN/inf as None (JSON-safe)."""
     out = np.round(arr.astype(np.float64).ravel(), digits)
     if np.isfinite(out).all():
-        return out.tolist()
+        values: list[float | None] = out.tolist()
+        return values
     return [v if math.isfinite(v) else None for v in out.tolist()]
 
 
@@ -127,10 +129,10 @@ class RobotView:
         """Streaming topics whose last message is older than ``max_age_s`` (a publisher that went quiet)."""
         return sorted(k for k, t in self.received.items() if k in self.STREAMING and wall_now_s - t > max_age_s)
 
-    def status(self, now_s: float, clock: str, jog: dict, wall_now_s: float | None = None) -> dict:
+    def status(self, now_s: float, clock: str, jog: dict[str, Any], wall_now_s: float | None = None) -> dict[str, Any]:
         """The JSON-ready status: odom, map pose, wheels, nav, health, jog, map, stale topics."""
         found = self.robot_pose()
-        out: dict = {"stamp": finite(now_s, 3), "clock": clock, "jog": jog,
+        out: dict[str, Any] = {"stamp": finite(now_s, 3), "clock": clock, "jog": jog,
                      "stale": self.stale(wall_now_s) if wall_now_s is not None else [],
                      "health": sorted(self.alive), "map": {"available": self.grid is not None,
                                                            "version": self.map_version}}
@@ -200,14 +202,14 @@ class VelocityRecorder:
         self.rows: collections.deque[tuple[float, ...]] = collections.deque(maxlen=int(history_s * rate_hz) + 1)
         self.cmd_hold_s = cmd_hold_s
 
-    def sample(self, now_s: float, cmd: Twist2D | None, cmd_at_s: float, odom: Odometry | None) -> tuple:
+    def sample(self, now_s: float, cmd: Twist2D | None, cmd_at_s: float, odom: Odometry | None) -> tuple[float, ...]:
         c = (cmd.vx, cmd.vy, cmd.wz) if cmd is not None and now_s - cmd_at_s <= self.cmd_hold_s else (0.0, 0.0, 0.0)
         m = (odom.twist.vx, odom.twist.vy, odom.twist.wz) if odom is not None else (math.nan,) * 3
         row = (round(now_s, 3), *c, *m)
         self.rows.append(row)
         return row
 
-    def window(self, seconds: float) -> list[tuple]:
+    def window(self, seconds: float) -> list[tuple[float, ...]]:
         if not self.rows:
             return []
         t_end = self.rows[-1][0]

@@ -201,7 +201,8 @@ def _surface_distance(surface: np.ndarray, resolution: float, max_dist: float, l
     d = ndimage.distance_transform_edt(~surface) * resolution
     if less_half_cell:
         d = np.maximum(d - 0.5 * resolution, 0.0)
-    return np.minimum(d, max_dist)
+    clipped: np.ndarray = np.minimum(d, max_dist)
+    return clipped
 
 
 class LikelihoodField:
@@ -638,7 +639,8 @@ class ParticleFilter:
             weights = sums + 1.0
         cumulative = np.cumsum(weights)
         picks = np.searchsorted(cumulative, self.rng.random(k) * cumulative[-1], side="right")
-        return poses[np.minimum(picks, candidates - 1)]
+        picked: np.ndarray = poses[np.minimum(picks, candidates - 1)]
+        return picked
 
     def resample(self) -> int:
         """Low-variance resampling with KLD-sampled population size and random injection; returns the new size."""
@@ -755,7 +757,8 @@ def cluster_labels(poses: np.ndarray) -> np.ndarray:
             parent[max(ra, rb)] = min(ra, rb)
     roots = np.array([root(i) for i in range(count + 1)])
     _, compact = np.unique(roots, return_inverse=True)
-    return compact[labels[bx, by, bt]] - (1 if count > 0 else 0)
+    cluster_of: np.ndarray = compact[labels[bx, by, bt]] - (1 if count > 0 else 0)
+    return cluster_of
 
 
 @dataclass
@@ -825,29 +828,36 @@ class Amcl:
         self._stage = -1  # -1: none; 0..local_recovery_attempts-1: local resets; local_recovery_attempts: global
         self._stage_started_at = 0.0
         self._updates_since_reset = 0
+        self.stale_scans_ignored = 0
+        #: scans stamped before this (s) predate the last initial pose or global request: ignored
+        self._scans_from_s = -math.inf
         #: a refinement waits for the next update (request_nomotion_update(refine=True))
         self.refine_pending = False
         self.last_refinement: Refinement | None = None
         #: how well the pose is known per direction (drift while driving, shrunk by what the scans pin)
         self.uncertainty = PoseUncertainty(uncertainty_params)
 
-    def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None) -> None:
-        """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2)."""
+    def set_initial_pose(self, pose: tuple[float, float, float], covariance: np.ndarray | None = None, *,
+                         stamp_s: float | None = None) -> None:
+        """Particles around ``pose`` (default covariance: 0.5 m, 0.5 m, pi/12 rad std-devs, as Nav2). ``stamp_s``:
+        when the pose was given; scans taken before it show the robot before it was placed there and are ignored
+        (as ROS's initialpose carries a header stamp)."""
         if covariance is None:
             covariance = np.diag([0.25, 0.25, (math.pi / 12.0) ** 2])
         if not all(math.isfinite(v) for v in pose):
             raise ValueError(f"initial pose {pose} is not finite")
         self.pf.reseed()
         self.pf.init_gaussian(pose, covariance)
-        self._reinitialised()
+        self._reinitialised(stamp_s)
         self.uncertainty.reset(covariance)
         self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
-    def global_localization(self) -> None:
+    def global_localization(self, *, stamp_s: float | None = None) -> None:
+        """Particles over all free space; ``stamp_s`` as in ``set_initial_pose``."""
         self.pf.reseed()
         self.pf.init_uniform()
-        self._reinitialised()
+        self._reinitialised(stamp_s)
         self._set_state("localizing", "global localization")
 
     def request_nomotion_update(self, refine: bool = False) -> None:
@@ -867,7 +877,8 @@ class Amcl:
         """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
         self.pf_odom_pose = None
 
-    def _reinitialised(self) -> None:
+    def _reinitialised(self, stamp_s: float | None = None) -> None:
+        self._scans_from_s = -math.inf if stamp_s is None else float(stamp_s)
         self.pf_odom_pose = None
         self.resample_count = 0
         self.estimate = None
@@ -886,7 +897,11 @@ class Amcl:
                 ) -> bool:
         """One scan at ``stamp`` (s; None: DEFAULT_SCAN_PERIOD_S after the last): motion + sensor update
         (+ resampling) when the gates open, then the verdict; returns whether the filter updated. ``dense``: every
-        valid beam of the scan, for a pending refinement."""
+        valid beam of the scan, for a pending refinement. A scan stamped before the last initial pose or global
+        request is ignored (returns False)."""
+        if stamp is not None and stamp < self._scans_from_s:
+            self.stale_scans_ignored += 1
+            return False
         self._now = self._now + self.DEFAULT_SCAN_PERIOD_S if stamp is None else float(stamp)
         p = self.params
         if self.state != "tracking" and self._now - self._last_update_at >= p.recovery_update_period_s:

@@ -139,13 +139,11 @@ def run_lost(seeds: tuple[int, ...] = (1, 2)) -> list[BenchRow]:
     """Kidnapping and a 2 m corrupted initial pose on the real maps (realmap.kidnap_trial/initial_pose_trial):
     per map the worst time to the "lost" verdict, and the outcomes; ``localization.lost_detect_s`` is the worst
     over all maps."""
-    import os
-    from pathlib import Path
-
+    from services.common.devdata import shared_dir
     from services.common.map_io import load_map
     from services.localization.realmap import initial_pose_trial, kidnap_trial
 
-    root = Path(os.environ.get("ZAGV_SHARED", Path(__file__).resolve().parents[3] / "shared")) / "data" / "maps"
+    root = shared_dir() / "data" / "maps"
     rows: list[BenchRow] = []
     worst = 0.0
     for folder, yaml in REAL_MAPS:

@@ -450,7 +450,7 @@ class LocalizationNode:
             cfg = self.cfg
             cov = np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa])
         try:
-            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov)
+            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov, stamp_s=self.ctx.clock.now())
         except ValueError as exc:
             return Reply(ok=False, message=str(exc))
         self._localizing_from((p.x, p.y, p.theta))
@@ -463,7 +463,7 @@ class LocalizationNode:
         if (problem := self._no_map()) is not None:
             return problem
         assert self.amcl is not None
-        self.amcl.global_localization()
+        self.amcl.global_localization(stamp_s=self.ctx.clock.now())
         self._localizing_from(None)
         self.log.info("global localization: %d particles over free space", self.amcl.pf.n)
         reply = Reply(ok=True, message=f"global localization started with {self.amcl.pf.n} particles")

@@ -43,8 +43,9 @@ class BeamModel:
     max_dist_m: float
 
     def log_pz(self, d: np.ndarray) -> np.ndarray:
-        return np.log(np.maximum(self.z_hit * np.exp(-np.square(d) / (2.0 * self.sigma_hit ** 2))
-                                 + self.rand_density, 1e-300))
+        log_p: np.ndarray = np.log(np.maximum(self.z_hit * np.exp(-np.square(d) / (2.0 * self.sigma_hit ** 2))
+                                              + self.rand_density, 1e-300))
+        return log_p
 
 
 @dataclass(frozen=True)
@@ -137,7 +138,8 @@ def log_likelihood(distance_m: np.ndarray, origin: tuple[float, float, float], r
             through |= cells_set(occupied, origin, resolution, lx[:, None] + short * np.cos(ga),
                                  ly[:, None] + short * np.sin(ga))
         d = np.where(through, model.max_dist_m, d)
-    return model.log_pz(d).sum(axis=1)
+    total: np.ndarray = model.log_pz(d).sum(axis=1)
+    return total
 
 
 def refine_pose(distance_m: np.ndarray, origin: tuple[float, float, float], resolution: float, model: BeamModel,
@@ -165,8 +167,10 @@ def refine_pose(distance_m: np.ndarray, origin: tuple[float, float, float], reso
 
     def objective(cand: np.ndarray) -> np.ndarray:
         dq = cand - base
-        return (log_likelihood(distance_m, origin, resolution, model, cand, ranges, bearings, mount, occupied)
-                - 0.5 * np.einsum("ki,ij,kj->k", dq, info, dq))
+        score: np.ndarray = (log_likelihood(distance_m, origin, resolution, model, cand, ranges, bearings, mount,
+                                            occupied)
+                             - 0.5 * np.einsum("ki,ij,kj->k", dq, info, dq))
+        return score
 
     start_j = float(objective(base[None, :])[0])
     best, best_j = base.copy(), start_j

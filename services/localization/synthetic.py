@@ -9,6 +9,7 @@ the true body motion with scale errors and noise; ``drive`` feeds AMCL along a r
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,7 +48,8 @@ class Laser:
         return ranges.astype(np.float32)
 
 
-def route(poses: list[tuple[float, float, float]], step_m: float = 0.05, step_rad: float = 0.05):
+def route(poses: list[tuple[float, float, float]], step_m: float = 0.05, step_rad: float = 0.05
+          ) -> Iterator[tuple[float, float, float]]:
     """Yield true poses along straight legs between ``poses``; heading turns linearly (shortest way) on each leg."""
     yield poses[0]
     for (x0, y0, t0), (x1, y1, t1) in zip(poses, poses[1:]):

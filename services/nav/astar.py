@@ -93,7 +93,8 @@ class AStarPlanner:
     def _escape(self, cost: np.ndarray, start: tuple[int, int]) -> np.ndarray:
         """The inscribed cells 8-connected to the start's inscribed cell (which the search may leave through)."""
         labels, _ = ndimage.label(cost == INSCRIBED, structure=np.ones((3, 3)))
-        return labels == labels[start]
+        escape: np.ndarray = labels == labels[start]
+        return escape
 
     def _plan_compiled(self, cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int], resolution: float
                        ) -> PlanResult:

@@ -15,7 +15,6 @@ A* rows (workloads in services/nav/workloads.py, docs/performance.md):
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
 import subprocess
@@ -26,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from services.common.bench import BenchRow, time_calls
+from services.common.devdata import shared_dir
 from services.common.robot import TwistLimits
 from services.nav.astar import AStarPlanner
 from services.nav.costmap import Costmap2D, Footprint, GlobalCostmap, InflationLayer, ObstacleLayer, StaticLayer
@@ -34,10 +34,6 @@ from services.nav.workloads import Workload, real_map_workload, warehouse_costma
 
 RESOLUTION = 0.05
 REPO_ROOT = Path(__file__).resolve().parents[2]
-
-
-def _shared_dir() -> Path:
-    return Path(os.environ.get("ZAGV_SHARED", REPO_ROOT.parent / "shared"))
 
 
 def obstacle_map(n: int = 1000, seed: int = 7) -> np.ndarray:
@@ -128,7 +124,7 @@ def bench_astar() -> list[BenchRow]:
     if not first.ok:
         raise RuntimeError(f"warehouse workload has no path: {first.error}")
     cells = first.cost / wl.resolution
-    source = _shared_dir() / "reference" / "harness" / "astar.c"
+    source = shared_dir() / "reference" / "harness" / "astar.c"
     ref = None
     if source.is_file() and shutil.which("gcc"):
         ref = CReference(source, wl)
@@ -158,7 +154,7 @@ def bench_astar() -> list[BenchRow]:
     t_py = _plan_ms(python, wl, 1)
     rows.append(BenchRow("astar.python_ms", float(t_py[0]), "ms", "pure-Python reference loop, same workload"))
 
-    maps = _shared_dir() / "data" / "maps"
+    maps = shared_dir() / "data" / "maps"
     largest = _largest_map(maps) if maps.is_dir() else None
     if largest is None:
         print(f"bench astar: no maps in {maps} (set ZAGV_SHARED); real-map rows left out", file=sys.stderr)

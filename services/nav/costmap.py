@@ -82,7 +82,8 @@ class Footprint:
         """Whether points (n, 2) in base_link lie inside the footprint."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
         if self.is_circle:
-            return np.hypot(xy[:, 0], xy[:, 1]) <= self.radius_m
+            within: np.ndarray = np.hypot(xy[:, 0], xy[:, 1]) <= self.radius_m
+            return within
         pts = np.asarray(self.polygon, dtype=float)
         inside = np.zeros(len(xy), dtype=bool)
         for (x1, y1), (x2, y2) in zip(pts, np.roll(pts, -1, axis=0)):
@@ -96,7 +97,8 @@ class Footprint:
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ab = b - a
     t = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-12), 0.0, 1.0)
-    return np.hypot(*(a + t[:, None] * ab - p).T)
+    distance: np.ndarray = np.hypot(*(a + t[:, None] * ab - p).T)
+    return distance
 
 
 # --------------------------------------------------------------------------- grid

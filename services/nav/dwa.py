@@ -121,7 +121,8 @@ class DwaPlanner:
         circumscribed radius to an obstacle (``distance_m``, the inflation layer's distance field, when given)."""
         centre = costmap.cost_at(traj[..., 0], traj[..., 1]).astype(np.int16)
         if self._outline is None:
-            return centre.max(axis=1)
+            centre_worst: np.ndarray = centre.max(axis=1)
+            return centre_worst
         centre = np.where(centre == INSCRIBED, MAX_NON_OBSTACLE, centre)  # inscribed is not a collision for a polygon
         if distance_m is not None and distance_m.shape == costmap.cost.shape:
             i, j = costmap.world_to_map(traj[..., 0], traj[..., 1])
@@ -131,7 +132,7 @@ class DwaPlanner:
             near = d < self.footprint.circumscribed_radius_m + costmap.resolution
         else:
             near = np.ones(traj.shape[:2], dtype=bool)
-        worst = centre.max(axis=1)
+        worst: np.ndarray = centre.max(axis=1)
         si, ki = np.nonzero(near)
         if len(si):
             poses = traj[si, ki]

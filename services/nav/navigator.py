@@ -31,13 +31,14 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
 from services.nav.astar import AStarPlanner, PlanResult, cells_to_path, planning_cost, smooth_cells
-from services.nav.config import NavConfig
+from services.nav.config import CostmapConfig, NavConfig
 from services.nav.costmap import (
     INSCRIBED,
     LETHAL,
@@ -121,7 +122,7 @@ class Sequence:
     waypoints: list[tuple[str, tuple[float, float, float]]]
     index: int = 0
     paused: bool = False
-    results: list[dict] = field(default_factory=list)
+    results: list[dict[str, Any]] = field(default_factory=list)
 
 
 class Navigator:
@@ -135,7 +136,7 @@ class Navigator:
         self.footprint = Footprint(radius, poly)
         inscribed = self.footprint.inscribed_radius_m
 
-        def costmap_layers(cc):
+        def costmap_layers(cc: CostmapConfig) -> tuple[StaticLayer, ObstacleLayer, InflationLayer]:
             infl = InflationLayer(inscribed, cc.inflation_radius_m or robot.inflation_radius_m, cc.cost_scaling_factor)
             obs = ObstacleLayer(cc.obstacle_max_range_m, cc.raytrace_max_range_m)
             return StaticLayer(cc.lethal_threshold, cc.track_unknown), obs, infl

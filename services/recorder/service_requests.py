@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import msgspec
 
@@ -28,6 +29,9 @@ from proto import codec
 from proto.messages import ServiceEvent
 from services.common.service_events import query_of
 from services.recorder.rosconv import stamp_to_ns
+
+if TYPE_CHECKING:
+    from services.recorder.source import BagSource
 
 
 @dataclass
@@ -108,7 +112,7 @@ class RequestSchedule:
         return out
 
 
-def recorded_requests(source, start_ns: int, end_ns: int) -> list[RecordedRequest]:  # BagSource
+def recorded_requests(source: BagSource, start_ns: int, end_ns: int) -> list[RecordedRequest]:
     """The service requests recorded in the bag's ``_service_event`` topics within [start_ns, end_ns]."""
     names = {t.lstrip("/") for t in source.topics if query_of(t.lstrip("/")) is not None}
     if not names:

@@ -50,7 +50,7 @@ BLOCKED_GAP_M = 1.5
 class FleetClient(Client):
     """A robot's ``Client`` that also records every contact (rising edge of ``collided``) once ``watching``."""
 
-    def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:  # noqa: ANN001
+    def __init__(self, session, keys: Keys, loop: asyncio.AbstractEventLoop) -> None:
         self.contacts: list[tuple[float, str]] = []
         self.watching = False
         self.track: dict[float, tuple[float, float]] = {}  # sim stamp -> true (x, y) while watching
@@ -143,7 +143,7 @@ def nearest_robot(c: Client, others: Mapping[str, Client], radius_m: float) -> t
 
 
 async def run_robot(robot: ScenarioRobot, c: Client, clients: Mapping[str, Client], t0: float, goal_timeout_s: float,
-                    progress) -> dict:  # noqa: ANN001
+                    progress) -> dict:
     """Robot ``robot``'s goals in order, the first ``start_after_s`` after ``t0`` (sim s)."""
     from services.common.robot import RobotSpec
 
@@ -165,7 +165,7 @@ async def run_robot(robot: ScenarioRobot, c: Client, clients: Mapping[str, Clien
     return {"id": robot.id, "start": list(robot.start), "goals": goals}
 
 
-async def run_fleet_scenario(sc: Scenario, session, *, goal_timeout_s: float, progress=print) -> FleetResult:  # noqa: ANN001
+async def run_fleet_scenario(sc: Scenario, session, *, goal_timeout_s: float, progress=print) -> FleetResult:
     loop = asyncio.get_running_loop()
     clients = {r.id: FleetClient(session, Keys(r.id), loop) for r in sc.robots}
     result = FleetResult()

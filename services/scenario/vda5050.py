@@ -230,7 +230,7 @@ class TruthTracker:
     """Every robot's ``sim/ground_truth``: (wall epoch, sample) tracks and contacts (rising edges of ``collided``)
     once ``watching``."""
 
-    def __init__(self, session, robot_ids: list[str]) -> None:  # noqa: ANN001
+    def __init__(self, session, robot_ids: list[str]) -> None:
         self._lock = threading.Lock()
         self.watching = False
         self.latest: dict[str, m.GroundTruth] = {}
@@ -239,10 +239,10 @@ class TruthTracker:
         self._subs = [session.declare_subscriber(Keys(rid)("sim/ground_truth"), self._callback(rid))
                       for rid in robot_ids]
 
-    def _callback(self, rid: str):  # noqa: ANN202
+    def _callback(self, rid: str):
         key = Keys(rid)("sim/ground_truth")
 
-        def on_sample(sample) -> None:  # noqa: ANN001
+        def on_sample(sample) -> None:
             msg = codec.decode_as(m.GroundTruth, sample.payload.to_bytes(), key)
             with self._lock:
                 before = self.latest.get(rid)
@@ -287,7 +287,7 @@ class TruthTracker:
                 s.undeclare()
 
 
-def _wait(pred, timeout_s: float, what: str) -> None:  # noqa: ANN001
+def _wait(pred, timeout_s: float, what: str) -> None:
     deadline = time.monotonic() + timeout_s
     while not pred():
         if time.monotonic() > deadline:
@@ -295,7 +295,7 @@ def _wait(pred, timeout_s: float, what: str) -> None:  # noqa: ANN001
         time.sleep(0.05)
 
 
-def wait_fleet_online(master, robots: list[ScenarioRobot], timeout_s: float) -> None:  # noqa: ANN001
+def wait_fleet_online(master, robots: list[ScenarioRobot], timeout_s: float) -> None:
     """The master sees every AGV ONLINE and a state with its position initialized at its start."""
     def at_start(r: ScenarioRobot) -> bool:
         s = master.last_state(r.id)
@@ -311,7 +311,7 @@ def wait_fleet_online(master, robots: list[ScenarioRobot], timeout_s: float) -> 
               f"{r.id} {((master.last_state(r.id) or {}).get('agvPosition'))}" for r in robots))
 
 
-def run_orders(sc: Scenario, session, master, *, order_timeout_s: float = 900.0,  # noqa: ANN001
+def run_orders(sc: Scenario, session, master, *, order_timeout_s: float = 900.0,
                ready_timeout_s: float = 240.0, progress=print) -> Vda5050FleetResult:
     """Assign every robot its order through ``master`` (a ``MasterProcess`` for every robot's serial number) and
     judge the run from the ground truth (see the module doc)."""
@@ -371,7 +371,7 @@ def run_orders(sc: Scenario, session, master, *, order_timeout_s: float = 900.0,
         tracker.close()
 
 
-def _processed(master, rid: str, order: dict, mark: int, timeout_s: float, progress) -> dict:  # noqa: ANN001
+def _processed(master, rid: str, order: dict, mark: int, timeout_s: float, progress) -> dict:
     """The master's orderProcessed event of ``rid``'s order, or a stand-in ``{"event": "timeout"}``."""
     try:
         event = master.wait(lambda e: e["event"] == "orderProcessed" and e.get("serialNumber") == rid

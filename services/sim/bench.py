@@ -115,12 +115,15 @@ def service_rows(seconds: float = 6.0) -> list[BenchRow]:
             except Exception:
                 time.sleep(0.2)
         if session is None:
-            return []
+            raise RuntimeError(f"no Zenoh router on port {zenoh_port} within 30 s (stack log in {run_dir})")
         sub = session.declare_subscriber(
             Keys()("clock"),
             lambda s: stamps.append((time.monotonic(), codec.decode_as(Clock, s.payload.to_bytes()).stamp)))
+        deadline = time.monotonic() + 60.0  # the sim service starts in 2-5 s on a quiet machine, far later under load
         while not stamps and time.monotonic() < deadline:
             time.sleep(0.1)
+        if not stamps:
+            raise RuntimeError(f"the sim service published no clock within 60 s (stack log in {run_dir})")
         time.sleep(1.0)  # warm up
         first = stamps[-1]
         time.sleep(seconds)

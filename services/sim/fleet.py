@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 
 import msgspec
 import numpy as np
@@ -56,7 +57,7 @@ class Fleet:
 
     # ------------------------------------------------------------------ geometry
 
-    def _margin_fn(self, rid: str):  # noqa: ANN202 - Callable[[float, float], float]
+    def _margin_fn(self, rid: str) -> Callable[[float, float], float]:
         sim = self.sims[rid]
         world = self.world
         radius = sim.footprint_radius_m
@@ -71,7 +72,7 @@ class Fleet:
 
         return margin
 
-    def _bodies_fn(self, rid: str):  # noqa: ANN202 - Callable[[], list[Body]]
+    def _bodies_fn(self, rid: str) -> Callable[[], list[Body]]:
         others = [self.sims[o] for o in self.ids if o != rid]
         return lambda: [Body(o.robot.x, o.robot.y, o.footprint_radius_m) for o in others]
 

@@ -16,6 +16,7 @@ Everything here is scalar Python on purpose: two modules do not pay numpy's per-
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -177,7 +178,7 @@ class SlipModel:
             return 1.0 - self.slip_ratio
         if self._i >= len(self._buf):
             self._refill()
-        f = self._buf[self._i]
+        f: float = self._buf[self._i]
         self._i += 1
         return f
 
@@ -202,7 +203,7 @@ class SwerveRobot:
         self.x = self.y = self.theta = 0.0
         self.vx = self.vy = self.wz = 0.0
         self.collided = False
-        self.margin = lambda x, y: math.inf
+        self.margin: Callable[[float, float], float] = lambda x, y: math.inf
 
     def teleport(self, x: float, y: float, theta: float) -> None:
         self.x, self.y, self.theta = x, y, wrap_angle(theta)

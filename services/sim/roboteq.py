@@ -215,7 +215,7 @@ class RoboteqNode:
         t, st = self.traction, self.steer
 
         def cmd(index: int, sub: int, typ: str, apply: Callable[[int], None]) -> None:
-            def setter(v: int, key=(index, sub), apply=apply) -> None:
+            def setter(v: int, key: tuple[int, int] = (index, sub), apply: Callable[[int], None] = apply) -> None:
                 self.commands[key] = v
                 apply(v)
 

@@ -8,17 +8,15 @@ group returns no rows and says so.
 
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
 from services.common.bench import BenchRow
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from services.common.devdata import shared_dir
 
 
 def _logs_dir() -> Path:
-    return Path(os.environ.get("ZAGV_SHARED", REPO_ROOT.parent / "shared")) / "data" / "logs"
+    return shared_dir() / "data" / "logs"
 
 
 def bench_slam() -> list[BenchRow]:

@@ -43,7 +43,8 @@ class MatchConstraint:
 
     def scan_projector(self) -> np.ndarray:
         """P = Σ_k w_k v_k v_kᵀ (2x2): the part of a translation the scan decides."""
-        return (self.directions * self.weights) @ self.directions.T
+        information: np.ndarray = (self.directions * self.weights) @ self.directions.T
+        return information
 
     def remap(self, scan_pose: np.ndarray, predicted_pose: np.ndarray) -> np.ndarray:
         """The scan's pose along the directions it fixes, the prediction's along the others; the scan's heading."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +56,7 @@ class RelativePoseError:
     n_relations: int
     n_missing: int
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -103,7 +104,7 @@ class TrajectoryError:
     rotation_rms_rad: float
     n_poses: int
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
@@ -142,4 +143,6 @@ def false_closures(from_scans: np.ndarray, to_scans: np.ndarray, measurements: n
         return np.zeros(0, bool)
     truth = between(reference[np.asarray(from_scans)], reference[np.asarray(to_scans)])
     error = between(truth, np.asarray(measurements, float).reshape(-1, 3))
-    return (np.hypot(error[:, 0], error[:, 1]) > max_xy_m) | (np.abs(wrap_angle(error[:, 2])) > max_theta_rad)
+    outliers: np.ndarray = ((np.hypot(error[:, 0], error[:, 1]) > max_xy_m)
+                            | (np.abs(wrap_angle(error[:, 2])) > max_theta_rad))
+    return outliers

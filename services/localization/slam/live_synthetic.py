@@ -33,7 +33,7 @@ class LiveRun:
     errors_m: np.ndarray  # map-pose error of every scan after the first
 
 
-def run_corridor(speed_mps: float = 1.0, waypoints: list | None = None, *, beams: int = 361,
+def run_corridor(speed_mps: float = 1.0, waypoints: list[tuple[float, float, float]] | None = None, *, beams: int = 361,
                  fov_rad: float = math.pi, render_every_scans: int = 0) -> LiveRun:
     """Drive ``waypoints`` at ``speed_mps`` with a 25 Hz LMS111-like laser (180°, 0.5°) and feed ``LiveMapper``;
     the map is rendered every ``render_every_scans`` scans (0: never) as the service does."""

@@ -31,7 +31,8 @@ class MapAgreement:
 
 def surface(occupied: np.ndarray, free: np.ndarray) -> np.ndarray:
     """Occupied cells with a free 8-neighbour."""
-    return occupied & ndimage.binary_dilation(free, np.ones((3, 3), bool))
+    bordering: np.ndarray = occupied & ndimage.binary_dilation(free, np.ones((3, 3), bool))
+    return bordering
 
 
 def occupied_centres(occupied: np.ndarray, resolution_m: float, origin_xy_m: tuple[float, float]) -> np.ndarray:

@@ -157,7 +157,8 @@ def decimate(points: np.ndarray, spacing_m: float) -> np.ndarray:
     keys = np.floor(points / spacing_m).astype(np.int64)
     flat = keys[:, 0] * 2_000_003 + keys[:, 1]
     _, first = np.unique(flat, return_index=True)
-    return points[np.sort(first)]
+    kept: np.ndarray = points[np.sort(first)]
+    return kept
 
 
 def scan_to_points(ranges_m: np.ndarray, angles_rad: np.ndarray, sensor_pose: np.ndarray, *,

@@ -76,7 +76,8 @@ def refine(grids: MultiResolutionGrid, points: np.ndarray, initial_pose: np.ndar
     inv_var = 1.0 / field_sigma**2
     has_prior = prior_information is not None and prior_pose is not None
 
-    def evaluate(grid: LikelihoodGrid, at: np.ndarray):
+    def evaluate(grid: LikelihoodGrid, at: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, np.ndarray | None]:
         world = transform_points(at, points)
         value, grad = grid.value_and_gradient(world)
         residual = 1.0 - value

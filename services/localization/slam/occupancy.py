@@ -46,7 +46,8 @@ class OccupancyGrid:
     def _flat(self, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
         h, w = self.log_odds.shape
         ok = (ix >= 0) & (iy >= 0) & (ix < w) & (iy < h)
-        return iy[ok] * w + ix[ok]
+        flat: np.ndarray = iy[ok] * w + ix[ok]
+        return flat
 
     def insert_scan(self, pose: np.ndarray, sensor_origin_xy_m: np.ndarray, points: np.ndarray) -> None:
         """Integrate hits ``points`` (N, 2, robot frame) seen from ``sensor_origin_xy_m`` (robot frame) by the
@@ -74,7 +75,8 @@ class OccupancyGrid:
         np.clip(flat, -self.clamp, self.clamp, out=flat)
 
     def probability(self) -> np.ndarray:
-        return 1.0 - 1.0 / (1.0 + np.exp(self.log_odds))
+        probability: np.ndarray = 1.0 - 1.0 / (1.0 + np.exp(self.log_odds))
+        return probability
 
     def trinary_image(self, occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> np.ndarray:
         """uint8 image (rows top = max y): 0 occupied, 254 free, 205 unknown."""

@@ -74,7 +74,8 @@ class PoseGraph:
         """eᵀΩe of the given edges at ``poses`` (default: current), without robust weighting."""
         err = self.edge_errors(poses)[np.asarray(edges, dtype=np.intp)]
         info = np.asarray(self._edges_info).reshape(-1, 3, 3)[np.asarray(edges, dtype=np.intp)]
-        return np.einsum("ni,nij,nj->n", err, info, err)
+        chi2: np.ndarray = np.einsum("ni,nij,nj->n", err, info, err)
+        return chi2
 
     def edge_errors(self, poses: np.ndarray | None = None) -> np.ndarray:
         """Error vectors e (E, 3) of every edge at ``poses`` (default: current)."""

@@ -21,7 +21,8 @@ import numpy as np
 
 def _bins(delta_xy: np.ndarray, n_bins: int) -> np.ndarray:
     bearing = np.arctan2(delta_xy[..., 1], delta_xy[..., 0])
-    return (np.floor((bearing + np.pi) / (2.0 * np.pi) * n_bins).astype(np.intp)) % n_bins
+    bins: np.ndarray = (np.floor((bearing + np.pi) / (2.0 * np.pi) * n_bins).astype(np.intp)) % n_bins
+    return bins
 
 
 @dataclass(frozen=True)
