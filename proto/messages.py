@@ -390,6 +390,9 @@ class InitialPoseRequest(Message):
     pose: Pose2D
     covariance: list[float] = msgspec.field(default_factory=list)
     at_scan_stamp: float = 0.0
+    #: when the pose was given (s, robot clock; 0: when the request arrives): scans stamped before it show the robot
+    #: before it was placed there and are ignored (ROS initialpose's header stamp); a replay sets the recorded one
+    stamp: float = 0.0
 
 
 class NoMotionRequest(Message):

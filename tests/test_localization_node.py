@@ -198,8 +198,10 @@ async def test_service_localizes_answers_queries_and_restarts_at_saved_pose(rout
         assert not bad.ok and "at_scan_stamp" in bad.message
         at_s = robot2.stamp + 0.3  # the third scan from now (its sum of 0.1 steps differs in the last bits)
         x, y, th = truth[-1]
+        # (the pose is stamped on the scans' clock: this service runs on wall time, the scans here on their own)
         reply = await client.query("localization/initial_pose", InitialPoseRequest(
-            pose=Pose2D(x=x, y=y, theta=th), covariance=[0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.01], at_scan_stamp=at_s))
+            pose=Pose2D(x=x, y=y, theta=th), covariance=[0.01, 0, 0, 0, 0.01, 0, 0, 0, 0.01], at_scan_stamp=at_s,
+            stamp=robot2.stamp))
         assert reply.ok and "will be set on the scan" in reply.message, reply.message
         for _ in range(5):
             await robot2.step(truth[-1])

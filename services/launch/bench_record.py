@@ -284,8 +284,8 @@ def replay_speed_factor(bag: Path) -> float:
         t0 = time.monotonic()
         # topics only: with no service listening, each recorded request would wait out --service-timeout
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "--rate", "0", "--quiet",
-                        "--no-service-requests", "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,
-                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                        "--no-service-requests", "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(),
+                       check=True, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         return bag_s / (time.monotonic() - t0)
     finally:
         router.terminate()

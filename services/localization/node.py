@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
+import msgspec
 import numpy as np
 
 from proto import array
@@ -394,6 +395,8 @@ class LocalizationNode:
         problem = self._initial_pose_problem(req)
         if problem is not None:
             return problem
+        if req.stamp <= 0:  # given now: scans taken before now predate it, also when it is applied later
+            req = msgspec.structs.replace(req, stamp=self.ctx.clock.now())
         at_ns = _ns(req.at_scan_stamp) if req.at_scan_stamp > 0 else None
         if at_ns is not None and (self._last_scan_ns is None or at_ns > self._last_scan_ns):
             p = req.pose
@@ -434,6 +437,8 @@ class LocalizationNode:
             return Reply(ok=False, message="covariance must be 9 finite numbers (3x3 over x, y, theta)")
         if not math.isfinite(req.at_scan_stamp) or req.at_scan_stamp < 0:
             return Reply(ok=False, message=f"at_scan_stamp {req.at_scan_stamp} must be 0 (now) or a scan stamp (s)")
+        if not math.isfinite(req.stamp) or req.stamp < 0:
+            return Reply(ok=False, message=f"stamp {req.stamp} must be 0 (now) or a time on the robot's clock (s)")
         col, row = self.grid.world_to_cell(np.array([p.x]), np.array([p.y]))
         if not (0 <= int(col[0]) < self.grid.width and 0 <= int(row[0]) < self.grid.height):
             return Reply(ok=False, message=f"initial pose ({p.x:.3f}, {p.y:.3f}) lies outside the map")
@@ -450,7 +455,8 @@ class LocalizationNode:
             cfg = self.cfg
             cov = np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa])
         try:
-            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov, stamp_s=self.ctx.clock.now())
+            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov,
+                                       stamp_s=req.stamp if req.stamp > 0 else self.ctx.clock.now())
         except ValueError as exc:
             return Reply(ok=False, message=str(exc))
         self._localizing_from((p.x, p.y, p.theta))

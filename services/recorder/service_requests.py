@@ -44,19 +44,26 @@ class RecordedRequest:
     log_ns: int
     input_topic: str = ""
     input_stamp_s: float = 0.0
+    received_stamp_s: float = 0.0  # the service's clock when it took the request (its request_received event)
 
 
 def replay_payload(req: RecordedRequest) -> bytes:
     """The payload to issue ``req`` again with: its recorded request, with ``at_scan_stamp`` set to the scan it was
-    served on when its type has that field (and it was served on a scan)."""
+    served on and ``stamp`` to when the service took it live, where its type has those fields."""
     req_type, _ = codec.query_types(req.query)
-    if req.input_topic != "scan" or req.input_stamp_s <= 0 or "at_scan_stamp" not in req_type.__struct_fields__:
+    fields = req_type.__struct_fields__
+    changes: dict[str, float] = {}
+    if req.input_topic == "scan" and req.input_stamp_s > 0 and "at_scan_stamp" in fields:
+        changes["at_scan_stamp"] = req.input_stamp_s
+    if req.received_stamp_s > 0 and "stamp" in fields:
+        changes["stamp"] = req.received_stamp_s
+    if not changes:
         return req.request
     try:
         msg = codec.decode_as(req_type, req.request)
     except codec.ProtoDecodeError:  # issued as recorded: the service refuses it with the reason
         return req.request
-    return codec.encode(msgspec.structs.replace(msg, at_scan_stamp=req.input_stamp_s))
+    return codec.encode(msgspec.structs.replace(msg, **changes))
 
 
 def collect(events: Iterable[tuple[int, str, ServiceEvent]]) -> list[RecordedRequest]:
@@ -69,7 +76,7 @@ def collect(events: Iterable[tuple[int, str, ServiceEvent]]) -> list[RecordedReq
         if query is None:
             continue
         if ev.event == "request_received":
-            received = RecordedRequest(query, ev.sequence, ev.request, log_ns)
+            received = RecordedRequest(query, ev.sequence, ev.request, log_ns, received_stamp_s=ev.stamp)
             requests.append(received)
             latest[(query, ev.sequence)] = received
         elif (answered := latest.get((query, ev.sequence))) is not None and ev.input_topic and ev.input_stamp > 0:
