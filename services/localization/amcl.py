@@ -30,8 +30,8 @@ from typing import Literal
 
 import msgspec
 import numpy as np
-from scipy import ndimage
 
+from services.common import gridops
 from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.map_io import FREE, UNKNOWN, OccupancyMap
 from services.common.se2 import compose, inverse, wrap_angle
@@ -227,7 +227,7 @@ def _surface_distance(surface: np.ndarray, resolution: float, max_dist: float, l
     field as forgiving (and a recovering filter as able to find the robot) when looked up at the nearest corner."""
     if not surface.any():
         return np.full(surface.shape, max_dist)
-    d = ndimage.distance_transform_edt(~surface) * resolution
+    d = gridops.distance_transform_edt(~surface) * resolution
     if less_half_cell:
         d = np.maximum(d - 0.5 * resolution, 0.0)
     clipped: np.ndarray = np.minimum(d, max_dist)
@@ -860,7 +860,7 @@ def cluster_labels(poses: np.ndarray) -> np.ndarray:
     dense = np.zeros((int(bx.max()) + 1, int(by.max()) + 1, nt + 1), dtype=bool)
     dense[bx, by, bt] = True
     dense[:, :, nt] = dense[:, :, 0]
-    labels, count = ndimage.label(dense, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, count = gridops.label(dense)
     parent = np.arange(count + 1)
 
     def root(i: int) -> int:
