@@ -382,10 +382,26 @@ class WaypointsControl(Message):
 
 
 class InitialPoseRequest(Message):
-    """Set the localization estimate: pose in map, with a 3x3 covariance (empty: filter defaults)."""
+    """Set the localization estimate: pose in map, with a 3x3 covariance (empty: filter defaults).
+    ``at_scan_stamp`` (s): 0 sets it at once; else just before the filter runs on the first scan stamped at or after
+    it (``zagv replay`` sets the stamp of the scan a recorded request was served on, so that the replayed filter is
+    re-initialised on the same scan as the live one, whatever scans are still on their way when the request comes)."""
 
     pose: Pose2D
     covariance: list[float] = msgspec.field(default_factory=list)
+    at_scan_stamp: float = 0.0
+    #: when the pose was given (s, robot clock; 0: when the request arrives): scans stamped before it show the robot
+    #: before it was placed there and are ignored (ROS initialpose's header stamp); a replay sets the recorded one
+    stamp: float = 0.0
+
+
+class NoMotionRequest(Message):
+    """Update the localization filter without motion and refine at rest (``localization/nomotion``).
+    ``at_scan_stamp`` (s): 0 runs it on the next scan the filter takes after the ones already waiting; else on the
+    first scan stamped at or after it (``zagv replay``: the scan a recorded request ran on). An ``Empty`` request
+    encodes as this one's defaults."""
+
+    at_scan_stamp: float = 0.0
 
 
 #: a map name ``localization/save_map`` accepts: 1-64 letters, digits, '_', '-' or '.', no path, not starting with

@@ -44,7 +44,7 @@ QUERIES: dict[str, tuple[type[m.Message], type[m.Message]]] = {
     "nav/clear_costmaps": (m.Empty, m.Reply),
     "localization/initial_pose": (m.InitialPoseRequest, m.Reply),
     "localization/global": (m.Empty, m.Reply),
-    "localization/nomotion": (m.Empty, m.LocalizationUpdate),
+    "localization/nomotion": (m.NoMotionRequest, m.LocalizationUpdate),
     "localization/save_map": (m.SaveMapRequest, m.Reply),
     "localization/mode": (m.ModeRequest, m.Reply),
     "map": (m.Empty, m.OccupancyGrid),

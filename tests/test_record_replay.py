@@ -18,7 +18,13 @@ from rosbags.typesys import Stores, get_typestore
 from proto import codec
 from proto import messages as m
 from services.common.se2 import yaw_to_quaternion
-from services.launch.bench_record import bag_mb, record_corridor, replay_into_localization, trajectory_rms_m
+from services.launch.bench_record import (
+    bag_mb,
+    record_corridor,
+    replay_into_localization,
+    trajectory_rms_m,
+    trajectory_rms_per_leg_m,
+)
 
 # a stack start, a sim run to 65 s and a replay: minutes on a loaded machine, about one minute on 2 free cores
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(900)]
@@ -149,7 +155,9 @@ def test_replay_into_localization_alone_reproduces_the_trajectory(corridor, tmp_
     recorded = [codec.decode_as(m.Transform2D, p) for p in corridor.published["tf/map_odom"]]
     replayed = replay_into_localization(corridor.bag, corridor.world_yaml, tmp_path / "replay", rate=1.0)
     rms_m, compared = trajectory_rms_m(recorded, replayed, odom)
-    print(f"replay into localization: {compared} poses compared of {len(odom)} odom in the bag, RMS {rms_m:.4f} m")
+    legs = trajectory_rms_per_leg_m(recorded, replayed, odom, corridor.leg_starts_s)
+    print(f"replay into localization: {compared} poses compared of {len(odom)} odom in the bag, RMS {rms_m:.4f} m; "
+          f"per leg (at rest, goal 1): {', '.join(f'{r:.4f} m/{n}' for r, n in legs)}")
     assert compared >= 0.9 * len(odom)
     assert rms_m < 0.01
 

@@ -27,6 +27,7 @@ from services.launch.bench_record import (
     replay_into_localization,
     replay_speed_factor,
     trajectory_rms_m,
+    trajectory_rms_per_leg_m,
 )
 from services.launch.stack_process import REPO_ROOT, Stack
 from tests.support.waiting import wait_for_sync
@@ -41,7 +42,11 @@ def test_full_corridor_run_records_and_replays(tmp_path: Path) -> None:
     recorded = [codec.decode_as(m.Transform2D, p) for p in rec.published["tf/map_odom"]]
     odom = [codec.decode_as(m.Odometry, p) for p in rec.published["odom"]]
     replayed = replay_into_localization(rec.bag, rec.world_yaml, tmp_path / "replay", rate=1.0)
-    rms_m, matched = trajectory_rms_m(recorded, replayed, [o for o in odom if o.stamp >= recorded[0].stamp])
+    in_bag = [o for o in odom if o.stamp >= recorded[0].stamp]
+    rms_m, matched = trajectory_rms_m(recorded, replayed, in_bag)
+    legs = trajectory_rms_per_leg_m(recorded, replayed, in_bag, rec.leg_starts_s)
+    print("replay RMS per leg (at rest, then goals 1..7): "
+          + ", ".join(f"{r:.4f} m/{n}" for r, n in legs))
     speed = replay_speed_factor(rec.bag)
     print(f"corridor run: {rec.goals_reached}/{rec.goals} goals, {rec.sim_s:.0f} s, bag {bag_mb(rec.bag):.1f} MB "
           f"({bag_mb(rec.bag) / (rec.sim_s / 60):.1f} MB/min), record CPU {rec.record_cpu_s / rec.sim_s:.3f} cores, "

@@ -215,3 +215,21 @@ def test_record_time_base_waits_from_the_subscriptions(monkeypatch: pytest.Monke
     no_clock.subscribed()
     fake.now_s += record.LogClock.WAIT_S
     assert no_clock.log_ns(None, 7) == 7 and no_clock.sim_base is False
+
+
+def test_the_record_backlog_holds_samples_in_order_and_counts_what_does_not_fit() -> None:
+    """``zagv record``'s queue between the receiving thread and the writer: bounded by payload bytes; a sample past
+    the bound is dropped and counted per topic, and the count is reported."""
+    import queue
+
+    from services.recorder.record import Backlog
+
+    backlog = Backlog(max_bytes=10)
+    assert backlog.put(("agv/r1/scan", b"123456", 1, 2)) and backlog.put(("agv/r1/odom", b"1234", 3, 4))
+    assert not backlog.put(("agv/r1/scan", b"1", 5, 6)) and backlog.drop_line().startswith("dropped 1 message(s)")
+    assert backlog.get(0.1) == ("agv/r1/scan", b"123456", 1, 2)  # oldest first, and its bytes are free again
+    assert backlog.put(("agv/r1/scan", b"12345", 7, 8))
+    assert [backlog.get()[3] for _ in range(2)] == [4, 8] and backlog.held_bytes == 0
+    with pytest.raises(queue.Empty):
+        backlog.get()
+    assert backlog.dropped == {"scan": 1} and "(1 scan)" in backlog.drop_line() and Backlog().drop_line() == ""

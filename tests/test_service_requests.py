@@ -10,7 +10,13 @@ from proto import codec
 from proto import messages as m
 from services.common.service_events import ServiceEventLog, event_topic, query_of
 from services.recorder.bag import BagRecorder
-from services.recorder.service_requests import RecordedRequest, RequestSchedule, collect, recorded_requests
+from services.recorder.service_requests import (
+    RecordedRequest,
+    RequestSchedule,
+    collect,
+    recorded_requests,
+    replay_payload,
+)
 from services.recorder.source import BagSource
 
 TOPIC = "localization/nomotion/_service_event"
@@ -99,4 +105,26 @@ def test_recorded_events_survive_the_bag_and_become_requests(tmp_path: Path) -> 
         assert src.topics["/" + TOPIC] == "zagv_msgs/msg/Message"
         reqs = recorded_requests(src, src.start_ns, src.end_ns)
         assert not src.problems
-    assert reqs == [RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), int(0.16e9), "scan", 0.2)]
+    assert reqs == [RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), int(0.16e9), "scan", 0.2,
+                                    received_stamp_s=0.15)]
+
+
+def test_a_request_that_names_its_scan_is_issued_again_for_the_scan_it_was_served_on() -> None:
+    """An initial pose (or an update at rest) served live on the scan stamped 12.34 s is issued again with that stamp,
+    so that the replayed filter is re-initialised (updated) on the same scan; requests without such a field, or not
+    served on a scan, as recorded."""
+    pose = m.InitialPoseRequest(pose=m.Pose2D(x=1.0, y=2.0, theta=0.5), covariance=[0.01] * 9)
+    served = RecordedRequest("localization/initial_pose", 1, codec.encode(pose), 100, "scan", 12.34,
+                             received_stamp_s=12.3)
+    again = codec.decode_as(m.InitialPoseRequest, replay_payload(served))
+    assert (again.at_scan_stamp, again.stamp) == (12.34, 12.3)  # the scans before 12.3 s are ignored, as live
+    assert (again.pose, again.covariance) == (pose.pose, pose.covariance)
+    unserved = RecordedRequest("localization/initial_pose", 2, codec.encode(pose), 100)
+    assert replay_payload(unserved) == unserved.request
+    # nav asks for an update at rest with an Empty request: the same bytes as NoMotionRequest's defaults
+    nomotion = RecordedRequest("localization/nomotion", 1, codec.encode(m.Empty()), 100, "scan", 12.34)
+    assert codec.decode_as(m.NoMotionRequest, replay_payload(nomotion)).at_scan_stamp == 12.34
+    global_ = RecordedRequest("localization/global", 1, codec.encode(m.Empty()), 100, "scan", 12.34)
+    assert replay_payload(global_) == global_.request  # no scan to name in its type
+    garbled = RecordedRequest("localization/initial_pose", 3, b"\xc1", 100, "scan", 12.34)
+    assert replay_payload(garbled) == b"\xc1"  # the service refuses it with the reason

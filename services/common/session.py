@@ -11,7 +11,9 @@ Large payloads (map, costmap, particles, above ``transport/shared_memory/transpo
 message_size_threshold``) travel through POSIX shared memory between peers of one host: zenoh copies them into its
 SHM pool and sends a reference, negotiated per link, falling back to the socket when the other side cannot map the
 segment (another user, a private /dev under systemd). When ``/dev/shm`` is not writable here, SHM is switched off at
-once (:func:`shm_usable`).
+once (:func:`shm_usable`). Each process that publishes such payloads has its own pool, resident in full in every
+process that maps it, so the pool is ``SHM_POOL_BYTES`` (zenoh's default is 16 MiB) unless a config sets it: a
+payload that finds no room in the pool goes over the socket instead.
 """
 
 from __future__ import annotations
@@ -26,8 +28,18 @@ from services.common.settings import ZenohSettings
 #: where a peer listens when its settings name no endpoint: loopback, a port the kernel picks
 PEER_LISTEN_DEFAULT = "tcp/127.0.0.1:0"
 SHM_DIR = "/dev/shm"
+SHM_POOL_KEY = "transport/shared_memory/transport_optimization/pool_size"
+#: each process's zenoh SHM pool: room for several corridor-sized maps or costmaps (a 640 x 350 grid is 224 kB) in
+#: flight. The pool is resident in every process that maps it (measured: 16 MB per pool and reader with zenoh's
+#: 16 MiB default), so its size multiplies by the readers of map, costmap and particles
+SHM_POOL_BYTES = 2 * 1024 * 1024
 #: ``connect/retry`` unless a config sets it: redial a lost endpoint after 0.1 s, backing off to 0.5 s at most
 RECONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
+
+
+def _zenoh_default(conf: zenoh.Config, key: str) -> bool:
+    """Whether ``key`` of ``conf`` still has zenoh's default value."""
+    return bool(conf.get_json(key) == zenoh.Config().get_json(key))
 
 
 def shm_usable(path: str) -> bool:
@@ -61,6 +73,8 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
             {"enabled": True, "multihop": False, "autoconnect": {"router": [], "peer": ["router", "peer"]}}))
     if not shm_usable(SHM_DIR):
         conf.insert_json5("transport/shared_memory/enabled", "false")
+    elif _zenoh_default(conf, SHM_POOL_KEY):  # a pool size set by a config file stays
+        conf.insert_json5(SHM_POOL_KEY, str(SHM_POOL_BYTES))
     # extra json5 keys ([zenoh.options] table, then $ZAGV_ZENOH_OPTIONS as a JSON object for a whole stack)
     extra = dict(settings.options)
     extra.update(json.loads(os.environ.get("ZAGV_ZENOH_OPTIONS", "{}")))

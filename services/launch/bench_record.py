@@ -55,6 +55,8 @@ class CorridorRecording:
     world_yaml: Path | None = None
     estop_s: float | None = None
     blackbox_dir: Path | None = None
+    #: sim time at which each goal was sent (leg k runs from leg_starts_s[k] to the next; before the first: at rest)
+    leg_starts_s: list[float] = field(default_factory=list)
 
 
 def _env() -> dict[str, str]:
@@ -110,7 +112,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                 if rec.poll() is not None or time.monotonic() > deadline:  # the robot moves once the bag is open
                     raise RuntimeError("zagv record did not start recording")
                 time.sleep(0.05)
-            runs, ready_sim_s = asyncio.run(_drive(sc, stack))
+            runs, ready_sim_s, leg_starts_s = asyncio.run(_drive(sc, stack))
             if estop_at_s is not None:
                 # the black box holds what it saw since it was ready (before `zagv: ready`): a full minute of it
                 # lies before the e-stop only once the sim clock is a minute past that, whatever the machine's load
@@ -133,7 +135,7 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
         cpu_s = _children_cpu_s() - cpu0
     result = CorridorRecording(bag=bag, published=published, record_cpu_s=cpu_s,
                                world_yaml=run_dir / "stack" / "world.yaml", estop_s=estop_s,
-                               blackbox_dir=run_dir / "stack" / "blackbox")
+                               blackbox_dir=run_dir / "stack" / "blackbox", leg_starts_s=leg_starts_s)
     goals_done = [g for r in runs for g in r["goals"]]
     result.goals, result.goals_reached = len(goals_done), sum(1 for g in goals_done if g["reached"])
     result.sim_s = bag_span_s(bag)
@@ -148,10 +150,11 @@ def bag_span_s(bag: Path) -> float:
         return (src.end_ns - src.start_ns) / 1e9
 
 
-async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
+async def _drive(sc, stack: Stack) -> tuple[list[dict], float, list[float]]:  # Scenario
     """The scenario's goals in order from the start pose, without re-placing the robot: localization keeps the
     initial pose of its configuration, so that a replay into a fresh localization starts from the same prior.
-    Returns the runs and the sim time at which the ready stack was first seen publishing."""
+    Returns the runs, the sim time at which the ready stack was first seen publishing and the sim time at which
+    each goal was sent."""
     from services.scenario.client import Client, wait_until
     from services.scenario.runner import query_until, run_goal
 
@@ -173,10 +176,13 @@ async def _drive(sc, stack: Stack) -> tuple[list[dict], float]:  # Scenario
         # recorded one did before the bag opened, instead of converging while the robot already drives
         rest_until_s = c.sim_time + REST_BEFORE_DRIVING_S
         await wait_until(lambda: c.sim_time >= rest_until_s, f"{REST_BEFORE_DRIVING_S} s of sim time at rest", 300.0)
-        goals = [await run_goal(c, sc, 1, k, g, 300.0, None) for k, g in enumerate(sc.goals, 1)]
+        goals, leg_starts_s = [], []
+        for k, g in enumerate(sc.goals, 1):
+            leg_starts_s.append(c.sim_time)
+            goals.append(await run_goal(c, sc, 1, k, g, 300.0, None))
     finally:
         c.close()
-    return [{"run": 1, "goals": goals}], ready_sim_s
+    return [{"run": 1, "goals": goals}], ready_sim_s, leg_starts_s
 
 
 async def _estop_at(stack: Stack, at_s: float) -> float:
@@ -244,11 +250,25 @@ def trajectory_rms_m(recorded: list[m.Transform2D], replayed: list[m.Transform2D
     (rms_m, number of poses compared)."""
     t_rec, p_rec = map_trajectory(recorded, odom)
     t_rep, p_rep = map_trajectory(replayed, odom)
+    if not len(t_rec) or not len(t_rep):
+        return float("inf"), 0
     common, i_rec, i_rep = np.intersect1d(t_rec, t_rep, return_indices=True)
     if not len(common):
         return float("inf"), 0
     d = p_rec[i_rec, :2] - p_rep[i_rep, :2]
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1)))), len(common)
+
+
+def trajectory_rms_per_leg_m(recorded: list[m.Transform2D], replayed: list[m.Transform2D], odom: list[m.Odometry],
+                             leg_starts_s: list[float]) -> list[tuple[float, int]]:
+    """``trajectory_rms_m`` over each leg: before the first goal (at rest), then from each goal's start to the next;
+    (rms_m, poses compared) per leg (NaN, 0 where none)."""
+    bounds = [-np.inf, *leg_starts_s, np.inf]
+    out = []
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        leg = [o for o in odom if lo <= o.stamp < hi]
+        out.append(trajectory_rms_m(recorded, replayed, leg) if leg else (float("nan"), 0))
+    return out
 
 
 def replay_speed_factor(bag: Path) -> float:
@@ -262,9 +282,10 @@ def replay_speed_factor(bag: Path) -> float:
         time.sleep(1.0)
         bag_s = bag_span_s(bag)
         t0 = time.monotonic()
+        # topics only: with no service listening, each recorded request would wait out --service-timeout
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "--rate", "0", "--quiet",
-                        "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(), check=True,
-                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                        "--no-service-requests", "--connect", f"tcp/127.0.0.1:{port}"], cwd=REPO_ROOT, env=_env(),
+                       check=True, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
         return bag_s / (time.monotonic() - t0)
     finally:
         router.terminate()

@@ -3,6 +3,8 @@
 ``stack.cpu_cores`` is the average number of cores used by all services (sim and its CAN bus excluded) over the
 measurement window, from /proc/<pid>/stat utime+stime; ``stack.rss_mb`` their total resident memory (VmRSS) at
 the end of the window. Each service's share is reported as ``stack.<service>.cpu_cores`` / ``.rss_mb``.
+``stack.pss_mb`` (for information) is their proportional set size at the same moment: pages shared between them
+(the interpreter, numpy and zenoh libraries, zenoh's SHM pools) count once in total instead of once per process.
 ``sim.speed_factor`` is simulated seconds per wall second with the simulator free-running while the robot drives.
 """
 
@@ -41,6 +43,15 @@ def rss_mb(pid: int) -> float:
     return 0.0
 
 
+def pss_mb(pid: int) -> float:
+    """Proportional set size (``Pss`` of /proc/<pid>/smaps_rollup): each shared page divided by its sharers."""
+    with open(f"/proc/{pid}/smaps_rollup") as f:
+        for line in f:
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) / 1024.0
+    return 0.0
+
+
 async def _start_route(stack: Stack) -> None:
     session = stack.session()
     request = WaypointsRequest(waypoints=[Waypoint(pose=Pose2D(x=x, y=y, theta=t), id=str(i + 1))
@@ -71,9 +82,11 @@ def bench_footprint(window_s: float = 60.0) -> list[BenchRow]:
         elapsed = time.monotonic() - t0
         cores = {s: (cpu_seconds(p) - cpu0[s]) / elapsed for s, p in pids.items()}
         rss = {s: rss_mb(p) for s, p in pids.items()}
+        pss = {s: pss_mb(p) for s, p in pids.items()}
     rows = [
         BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.30"),
         BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 450"),
+        BenchRow("stack.pss_mb", sum(pss.values()), "MB", "shared pages counted once (information)"),
     ]
     for s in services:
         rows.append(BenchRow(f"stack.{s}.cpu_cores", cores[s], "cores"))

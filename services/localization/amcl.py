@@ -23,14 +23,15 @@ Hot paths use preallocated buffers (``out=``), so an update allocates little bey
 
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 from typing import Literal
 
 import msgspec
 import numpy as np
-from scipy import ndimage
 
+from services.common import gridops
 from services.common.grid import YAW_EPS_RAD, axis_aligned
 from services.common.map_io import FREE, UNKNOWN, OccupancyMap
 from services.common.se2 import compose, inverse, wrap_angle
@@ -128,6 +129,30 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     #: verdict stays tracking) while the likelihood drops well below its tracking level; a poorly matching stretch
     #: of a real map lowers it only a little
     tracking_injection_min: float = 0.1
+    #: a re-localisation (convergence after "lost" or a global localization) is trusted only once confirmed: for
+    #: ``confirm_updates`` filter updates in a row the filter stays converged and its pose, hill-climbed on the
+    #: scan, explains the scan better by at least ``confirm_margin`` (log-likelihood, nats) than any other pose found
+    #: for it: the best of ``global_localization_particles`` uniform poses (hill-climbed) and the track held before
+    #: the loss, carried by odometry, farther than ``confirm_exclude_m`` or turned by more than
+    #: ``confirm_exclude_rad``. Until then the verdict stays lost (nav holds the robot); a clearly better pose
+    #: (by the margin) moves the particles there to be confirmed in turn. A self-similar building gives several
+    #: poses of about the same likelihood: none is confirmed, and the recovery ends saying it cannot relocalize.
+    #: After a loss the pose must also explain the scans nearly as well as the track did: its log-likelihood per beam
+    #: (hill-climbed) at most ``fit_drop`` nats below the median over the last ``fit_window`` tracking
+    #: updates (a pose in the wrong place fits a scan of a real building loosely, beams centimetres off all round).
+    #: The same test guards the spread: particles spread beyond ``lost_spread_m`` (injected ones that found other
+    #: poses fitting the scan) make a tracking filter lost only when its pose no longer fits that well
+    confirm_updates: int = 5
+    confirm_margin: float = 3.0
+    fit_drop: float = 0.1
+    fit_window: int = 20
+    confirm_exclude_m: float = 1.0
+    confirm_exclude_rad: float = 0.5
+    #: half of the search's candidates lie within this distance (m) of the pose: a repetitive building (a row of
+    #: bays, offices, shelves) repeats itself next door first, and a large map leaves the neighbourhood sparse
+    confirm_near_m: float = 15.0
+    #: rivals kept from one confirmation check to the next (carried by odometry, climbed again on each scan)
+    confirm_rivals: int = 16
 
     def validate(self) -> None:
         """Raise ValueError naming the first bad parameter."""
@@ -154,6 +179,10 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "recovery_attempt_s": self.recovery_attempt_s > 0, "global_recovery_s": self.global_recovery_s > 0,
             "recovery_update_period_s": self.recovery_update_period_s >= 0,
             "tracking_injection_min": 0 <= self.tracking_injection_min <= 1,
+            "confirm_updates": self.confirm_updates >= 0, "confirm_margin": self.confirm_margin >= 0,
+            "fit_drop": self.fit_drop >= 0, "fit_window": self.fit_window >= 1,
+            "confirm_rivals": self.confirm_rivals >= 0, "confirm_exclude_m": self.confirm_exclude_m > 0,
+            "confirm_exclude_rad": self.confirm_exclude_rad > 0, "confirm_near_m": self.confirm_near_m >= 0,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -198,7 +227,7 @@ def _surface_distance(surface: np.ndarray, resolution: float, max_dist: float, l
     field as forgiving (and a recovering filter as able to find the robot) when looked up at the nearest corner."""
     if not surface.any():
         return np.full(surface.shape, max_dist)
-    d = ndimage.distance_transform_edt(~surface) * resolution
+    d = gridops.distance_transform_edt(~surface) * resolution
     if less_half_cell:
         d = np.maximum(d - 0.5 * resolution, 0.0)
     clipped: np.ndarray = np.minimum(d, max_dist)
@@ -363,6 +392,21 @@ class ParticleFilter:
         x, y = self.grid.cell_to_world(cols[pick] + jitter[:, 0] - 0.5, rows[pick] + jitter[:, 1] - 0.5)
         out[:, 0] = x
         out[:, 1] = y
+        out[:, 2] = self.rng.uniform(-math.pi, math.pi, size=k)
+
+    def _random_poses_near(self, out: np.ndarray, center: tuple[float, float, float], radius_m: float) -> None:
+        """Fill ``out`` (k x 3) with poses uniform over the free cells within ``radius_m`` of ``center`` (any
+        heading); over all free space when none is that close."""
+        cols, rows = self._free_cells
+        x, y = self.grid.cell_to_world(cols, rows)
+        near = np.nonzero((x - center[0]) ** 2 + (y - center[1]) ** 2 <= radius_m * radius_m)[0]
+        k = out.shape[0]
+        if near.size == 0 or k == 0:
+            self._random_poses(out)
+            return
+        pick = near[self.rng.integers(0, near.size, size=k)]
+        jitter = self.rng.random((k, 2)) - 0.5
+        out[:, 0], out[:, 1] = self.grid.cell_to_world(cols[pick] + jitter[:, 0], rows[pick] + jitter[:, 1])
         out[:, 2] = self.rng.uniform(-math.pi, math.pi, size=k)
 
     def _set_uniform_weights(self, n: int) -> None:
@@ -642,6 +686,81 @@ class ParticleFilter:
         picked: np.ndarray = poses[np.minimum(picks, candidates - 1)]
         return picked
 
+    @property
+    def last_beam_count(self) -> int:
+        """Beams of the last sensor update (0 before the first)."""
+        return 0 if self._last_beams is None else int(self._last_beams[0].size)
+
+    def keep_near(self, pose: tuple[float, float, float], radius_m: float) -> int:
+        """Replace the particles farther than ``radius_m`` from ``pose`` by copies of random ones within it (weights
+        uniform); returns how many were replaced (none when no particle is within the radius)."""
+        n = self.n
+        d = np.hypot(self.poses[:n, 0] - pose[0], self.poses[:n, 1] - pose[1])
+        near, far = np.nonzero(d <= radius_m)[0], np.nonzero(d > radius_m)[0]
+        if near.size == 0 or far.size == 0:
+            return 0
+        self.poses[far] = self.poses[near[self.rng.integers(0, near.size, size=far.size)]]
+        self._set_uniform_weights(n)
+        return int(far.size)
+
+    def scan_log_likelihood(self, poses: np.ndarray) -> np.ndarray:
+        """Log-likelihood of the last scan at each of ``poses`` (k x 3), untempered: sum over beams of log pz
+        (``likelihood_field_prob``) or log(1 + sum pz^3) (``likelihood_field``)."""
+        k = poses.shape[0]
+        sums = np.empty(k)
+        if k == 0 or self._last_beams is None:
+            return np.full(k, -math.inf)
+        self._likelihood_sums(np.ascontiguousarray(poses, dtype=np.float64), k, sums)
+        return sums if self.params.laser_model_type == "likelihood_field_prob" else np.log1p(sums)
+
+    def climb(self, poses: np.ndarray, step_m: float = 0.1, step_rad: float = 0.05, steps: int = 8
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Hill-climb each pose (k x 3) on the last scan's log-likelihood: each step tries the 27 moves of
+        (-s, 0, +s) per axis and keeps the best; a pose whose best move is to stay halves its steps. Returns the
+        climbed poses and their log-likelihoods."""
+        k = poses.shape[0]
+        cur = np.array(poses, dtype=np.float64).reshape(k, 3)
+        best = self.scan_log_likelihood(cur)
+        if k == 0:
+            return cur, best
+        unit = np.array([(i, j, a) for i in (-1, 0, 1) for j in (-1, 0, 1) for a in (-1, 0, 1)], dtype=np.float64)
+        scale = np.tile([step_m, step_m, step_rad], (k, 1))
+        for _ in range(steps):
+            trial = (cur[:, None, :] + unit[None, :, :] * scale[:, None, :]).reshape(-1, 3)
+            ll = self.scan_log_likelihood(trial).reshape(k, 27)
+            pick = np.argmax(ll, axis=1)
+            better = ll[np.arange(k), pick] > best
+            cur[better] = trial.reshape(k, 27, 3)[better, pick[better]]
+            best = np.where(better, ll[np.arange(k), pick], best)
+            scale[~better] *= 0.5
+        cur[:, 2] = wrap_angle(cur[:, 2])
+        return cur, best
+
+    def best_alternative(self, pose: tuple[float, float, float], exclude_m: float, exclude_rad: float,
+                         candidates: int, keep: int = 16, seeds: np.ndarray | None = None, near_m: float = 0.0
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """Other poses for the last scan, away from ``pose`` (farther than ``exclude_m``, or turned by more than
+        ``exclude_rad``): the ``keep`` most likely of ``candidates`` uniform poses over free space (half of them
+        within ``near_m`` of ``pose`` when > 0), plus ``seeds``
+        (k x 3), all hill-climbed (``climb``). Returns those that stay away, most likely first, with their
+        log-likelihoods."""
+        if self._last_beams is None:
+            return np.zeros((0, 3)), np.zeros(0)
+        cand = np.empty((max(candidates, 0), 3))
+        self._random_poses(cand)
+        if near_m > 0.0:  # half of them near the pose: a repetitive building repeats itself next door first
+            self._random_poses_near(cand[: candidates // 2], pose, near_m)
+        if candidates > keep:
+            ll = self.scan_log_likelihood(cand)
+            cand = cand[np.argpartition(-ll, keep - 1)[:keep]]
+        if seeds is not None and seeds.size:
+            cand = np.vstack([cand, np.asarray(seeds, dtype=np.float64).reshape(-1, 3)])
+        climbed, climbed_ll = self.climb(cand)
+        far = ((np.hypot(climbed[:, 0] - pose[0], climbed[:, 1] - pose[1]) > exclude_m)
+               | (np.abs(wrap_angle(climbed[:, 2] - pose[2])) > exclude_rad))
+        order = np.argsort(-climbed_ll[far])
+        return climbed[far][order], climbed_ll[far][order]
+
     def resample(self) -> int:
         """Low-variance resampling with KLD-sampled population size and random injection; returns the new size."""
         p = self.params
@@ -741,7 +860,7 @@ def cluster_labels(poses: np.ndarray) -> np.ndarray:
     dense = np.zeros((int(bx.max()) + 1, int(by.max()) + 1, nt + 1), dtype=bool)
     dense[bx, by, bt] = True
     dense[:, :, nt] = dense[:, :, 0]
-    labels, count = ndimage.label(dense, structure=np.ones((3, 3, 3), dtype=bool))
+    labels, count = gridops.label(dense)
     parent = np.arange(count + 1)
 
     def root(i: int) -> int:
@@ -819,6 +938,9 @@ class Amcl:
         self.reason = "no pose yet"
         self.match_score = 0.0
         self.spread_m = math.inf
+        #: distance (m) between the last update's estimate and the one before carried by odometry: a tracking
+        #: filter's estimate moves continuously, and one that jumps farther than ``lost_spread_m`` is lost
+        self.jump_m = 0.0
         self.last_good: tuple[float, float, float] | None = None
         self.lost_at: float | None = None
         self.lost_reason = ""
@@ -828,6 +950,20 @@ class Amcl:
         self._stage = -1  # -1: none; 0..local_recovery_attempts-1: local resets; local_recovery_attempts: global
         self._stage_started_at = 0.0
         self._updates_since_reset = 0
+        #: a converged filter must still be confirmed before it tracks (after a loss or a global localization)
+        self.unconfirmed = False
+        self._confirmations = 0
+        self._confirm_checked_update = -1
+        #: map->odom while the verdict last said tracking on a fitting scan (the track held before a loss)
+        self._good_map_odom: tuple[float, float, float] | None = None
+        self._track_map_odom: tuple[float, float, float] | None = None
+        #: log-likelihood per beam of the (hill-climbed) estimate over the last tracking updates; its median at the
+        #: loss is the fit a re-localised pose must nearly reach
+        self._fits: collections.deque[float] = collections.deque(maxlen=params.fit_window)
+        self._track_fit: float | None = None
+        #: the best other poses of the last confirmation check (map frame) and the odometry pose they were at
+        self._rivals = np.zeros((0, 3))
+        self._rivals_odom: tuple[float, float, float] | None = None
         self.stale_scans_ignored = 0
         #: scans stamped before this (s) predate the last initial pose or global request: ignored
         self._scans_from_s = -math.inf
@@ -851,6 +987,11 @@ class Amcl:
         self._reinitialised(stamp_s)
         self.uncertainty.reset(covariance)
         self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
+        # the pose given is the prior that tells self-similar places apart: no confirmation against the whole map
+        self.unconfirmed = False
+        self._track_map_odom = None
+        self._track_fit = None
+        self._fits.clear()
         self._set_state("localizing", f"initial pose ({pose[0]:.2f}, {pose[1]:.2f}, {pose[2]:.2f})")
 
     def global_localization(self, *, stamp_s: float | None = None) -> None:
@@ -858,6 +999,10 @@ class Amcl:
         self.pf.reseed()
         self.pf.init_uniform()
         self._reinitialised(stamp_s)
+        self.unconfirmed = True
+        self._track_map_odom = None
+        self._track_fit = None
+        self._fits.clear()
         self._set_state("localizing", "global localization")
 
     def request_nomotion_update(self, refine: bool = False) -> None:
@@ -887,6 +1032,8 @@ class Amcl:
         self._stage = -1
         self._stage_started_at = self._now
         self._updates_since_reset = 0
+        self._confirmations = 0
+        self._rivals = np.zeros((0, 3))
 
     def _set_state(self, state: str, reason: str) -> None:
         self.state, self.reason = state, reason
@@ -926,6 +1073,10 @@ class Amcl:
             # the weighted set carries this scan's evidence; resampling only adds noise to its mean
             self.estimate = self.pf.estimate()
             self.spread_m = self.estimate.spread_m
+            self.jump_m = 0.0
+            if self.map_odom is not None:  # how far the estimate moved from where odometry carried the last one
+                carried = compose(self.map_odom, odom_pose)
+                self.jump_m = math.hypot(self.estimate.pose[0] - carried[0], self.estimate.pose[1] - carried[1])
             if self.resample_count % self.params.resample_interval == 0:
                 self.pf.resample()
             if self.refine_pending and dense is not None:
@@ -935,6 +1086,8 @@ class Amcl:
             self.map_odom = compose(self.estimate.pose, inverse(odom_pose))
             self.updates += 1
             self._updates_since_reset += 1
+            if self.state == "tracking":
+                self._fits.append(self._fit(self.estimate.pose)[1])
         if self.map_odom is not None:
             self._judge(compose(self.map_odom, odom_pose), beams, mount)
         return update
@@ -997,34 +1150,124 @@ class Amcl:
             return
         now = self._now
         if self.state == "tracking":
-            if self.match_score < p.lost_score or self.spread_m > p.lost_spread_m:
+            spread = self.spread_m > p.lost_spread_m
+            if spread and self._track_fits() and self.jump_m <= p.lost_spread_m and self.estimate is not None:
+                # the pose still explains the scans as well as the track did: the particles that spread out found
+                # other poses fitting the scan (a self-similar building), which is no evidence against the track
+                self.pf.keep_near(self.estimate.pose, p.lost_spread_m)
+                spread = False
+            if self.match_score < p.lost_score or spread or self.jump_m > p.lost_spread_m:
                 self.lost_at = now
-                self.lost_reason = f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m"
+                self.lost_reason = (f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m"
+                                    + (f", estimate jumped {self.jump_m:.2f} m" if self.jump_m > p.lost_spread_m
+                                       else ""))
                 # first the Augmented-MCL injection (allowed now, with w_slow still at the tracking level) for
                 # recovery_attempt_s: it finds a nearby kidnap within centimetres of travel; the sensor resets
                 # around last_good, then global, follow only when it has not converged by then
                 self._stage, self._stage_started_at = -1, now
+                self.unconfirmed, self._confirmations = True, 0
+                self._track_map_odom = self._good_map_odom
+                self._track_fit = float(np.median(self._fits)) if self._fits else None
+                self._fits.clear()
                 self._set_state("lost", f"recovering by random-particle injection (lost: {self.lost_reason})")
             else:
                 self.last_good = pose
+                self._good_map_odom = self.map_odom
             return
         converged = (len(self._scores) >= p.match_window and self.match_score >= p.track_score
                      and self.spread_m <= p.track_spread_m and self.pf.temperature <= 1.0
                      and self._updates_since_reset >= 2)
+        if not converged:
+            self._confirmations = 0
+        elif self.unconfirmed:
+            converged = self._confirm()
         if converged:
             self._stage = -1
+            self.unconfirmed = False
             self._set_state("tracking", f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m")
             self.last_good = pose
             return
         limit = p.global_recovery_s if self._stage >= p.local_recovery_attempts else p.recovery_attempt_s
         if now - self._stage_started_at < limit:
             return
-        if self._stage < 0:  # an initial pose that never converged: it was wrong
-            self.lost_at = now
-            self.lost_reason = f"not converged {limit:.0f} s after the {self.reason}"
+        if self._stage < 0:
+            if self.state != "lost":  # an initial pose (or a global localization) that never converged: it was wrong
+                self.lost_at = now
+                self.lost_reason = f"not converged {limit:.0f} s after the {self.reason}"
             self._start_stage(0)
         else:
             self._start_stage(min(self._stage + 1, p.local_recovery_attempts))
+
+    def _track_fits(self) -> bool:
+        """Whether the latest update's pose explains its scan about as well as the track has lately (per-beam
+        log-likelihood at most ``fit_drop`` below the median of the last ``fit_window`` tracking updates)."""
+        if len(self._fits) < 2:
+            return False
+        return self._fits[-1] >= float(np.median(self._fits)) - self.params.fit_drop
+
+    def _fit(self, pose: tuple[float, float, float]) -> tuple[tuple[float, float, float], float]:
+        """``pose`` hill-climbed on the last scan, with its log-likelihood per beam (nats)."""
+        climbed, ll = self.pf.climb(np.array([pose]))
+        beams = self.pf.last_beam_count
+        return (float(climbed[0, 0]), float(climbed[0, 1]), float(climbed[0, 2])), float(ll[0]) / max(beams, 1)
+
+    def _carried_rivals(self) -> np.ndarray:
+        """The rivals of the last confirmation check, moved by the odometry since (map pose ∘ odom motion)."""
+        if self._rivals.size == 0 or self._rivals_odom is None or self.pf_odom_pose is None:
+            return np.zeros((0, 3))
+        step = compose(inverse(self._rivals_odom), self.pf_odom_pose)
+        return np.array([compose((float(r[0]), float(r[1]), float(r[2])), step) for r in self._rivals])
+
+    def _confirm(self) -> bool:
+        """One more check of a converged, unconfirmed filter on its latest update (see ``AmclParams.confirm_*``):
+        True once ``confirm_updates`` updates in a row found no other pose within ``confirm_margin`` of it."""
+        p = self.params
+        if p.confirm_updates == 0:
+            return True
+        est = self.estimate
+        if est is None or self.pf_odom_pose is None:
+            return False
+        if self.updates == self._confirm_checked_update:
+            return False  # no new scan in the filter since the last check
+        self._confirm_checked_update = self.updates
+        pf = self.pf
+        hypothesis, fit = self._fit(est.pose)
+        at = f"({hypothesis[0]:.2f}, {hypothesis[1]:.2f})"
+        if self._track_fit is not None and fit < self._track_fit - p.fit_drop:
+            self._confirmations = 0
+            self.reason = (f"{at} not confirmed: it explains the scan worse than the track did ({fit:.2f} vs "
+                           f"{self._track_fit:.2f} nats per beam)")
+            return False
+        hypothesis_ll = fit * max(pf.last_beam_count, 1)
+        seeds = [self._carried_rivals()]
+        if self._track_map_odom is not None:  # the track held before the loss, where odometry carried it
+            seeds.append(np.array([compose(self._track_map_odom, self.pf_odom_pose)]))
+        rivals, rivals_ll = pf.best_alternative(hypothesis, p.confirm_exclude_m, p.confirm_exclude_rad,
+                                                p.global_localization_particles, seeds=np.vstack(seeds),
+                                                near_m=p.confirm_near_m)
+        # the best rivals ride along with odometry: a pose found once keeps competing on the next scans
+        self._rivals, self._rivals_odom = rivals[:p.confirm_rivals], self.pf_odom_pose
+        if rivals_ll.size == 0:
+            other, other_ll = hypothesis, -math.inf
+        else:
+            other, other_ll = (float(rivals[0, 0]), float(rivals[0, 1]), float(rivals[0, 2])), float(rivals_ll[0])
+        margin = hypothesis_ll - other_ll
+        rival = f"({other[0]:.2f}, {other[1]:.2f}, {other[2]:.2f})"
+        if margin >= p.confirm_margin:
+            self._confirmations += 1
+            self.reason = (f"confirming {at}: {self._confirmations}/{p.confirm_updates} scans, best other pose "
+                           f"{rival} {min(margin, 999.0):.1f} nats less likely")
+            return self._confirmations >= p.confirm_updates
+        self._confirmations = 0
+        if margin <= -p.confirm_margin:
+            # the filter settled on a pose that another one clearly beats: search around that one instead
+            pf.init_gaussian(other, np.diag([0.1 ** 2, 0.1 ** 2, 0.05 ** 2]))
+            self._scores.clear()
+            self._updates_since_reset = 0
+            self.reason = f"{at} rejected: {rival} explains the scan {-margin:.1f} nats better; relocalizing there"
+        else:
+            self.reason = f"ambiguous: {at} and {rival} explain the scan about as well ({margin:+.1f} nats)"
+        return False
 
     def _start_stage(self, stage: int) -> None:
         p = self.params

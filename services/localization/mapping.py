@@ -31,10 +31,10 @@ import numpy as np
 from proto import array
 from proto.messages import (
     MAP_NAME,
-    Empty,
     LaserScan,
     LocalizationUpdate,
     ModeRequest,
+    NoMotionRequest,
     Odometry,
     Pose2D,
     PoseWithCovariance,
@@ -335,7 +335,7 @@ class ModeSwitcher:
             return call(self.nav, req)
         return handler
 
-    async def on_nomotion(self, req: Empty) -> LocalizationUpdate:
+    async def on_nomotion(self, req: NoMotionRequest) -> LocalizationUpdate:
         if self.nav is None:
             return LocalizationUpdate(ok=False, message="localization is mapping; switch to navigation first")
         return await self.nav.on_nomotion(req)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
+import msgspec
 import numpy as np
 
 from proto import array
@@ -27,6 +28,7 @@ from proto.messages import (
     LocalizationState,
     LocalizationUpdate,
     Message,
+    NoMotionRequest,
     Odometry,
     Pose2D,
     PoseArray,
@@ -60,6 +62,11 @@ NOMOTION_ANSWER_TIMEOUT_S = 3.0
 
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
+
+
+def _ns(stamp_s: float) -> int:
+    """A stamp in integer nanoseconds, as a bag holds it: stamps compared after a record and replay still match."""
+    return round(stamp_s * 1e9)
 
 
 @dataclass
@@ -114,6 +121,11 @@ class LocalizationNode:
         self._awaiting_scan: list[tuple[str, int, Reply]] = []
         #: a localization/nomotion request waits until this scan (queued when it came) has been through the filter
         self._update_after: LaserScan | None = None
+        #: initial poses to set just before the filter runs on the first scan stamped at or after their stamp (ns)
+        self._at_scan: list[tuple[int, int, InitialPoseRequest, Reply]] = []  # (ns, sequence, ...)
+        self._last_scan_ns: int | None = None  # the stamp of the last scan the filter ran on
+        #: a localization/nomotion request for the first scan stamped at or after this (ns)
+        self._nomotion_at_ns: int | None = None
         self._load_map()
         self._initialise()
         self.node.extra_stats["localization"] = self.stats
@@ -221,7 +233,7 @@ class LocalizationNode:
 
     def on_scan(self, msg: LaserScan) -> None:
         self.stats["scans"] += 1
-        if self.amcl is None or not self.initialised:
+        if self.amcl is None or not (self.initialised or self._at_scan):
             return
         if self.odom.latest_stamp is None:
             self.stats["scans_without_odom"] += 1
@@ -233,6 +245,10 @@ class LocalizationNode:
             self._process(scan)
 
     def _process(self, scan: LaserScan) -> None:
+        self._apply_due(_ns(scan.stamp))
+        self._last_scan_ns = _ns(scan.stamp)
+        if not self.initialised:
+            return
         self._run_filter(scan)
         if scan is self._update_after:  # the last scan taken before a localization/nomotion request
             self._request_update_now()
@@ -374,37 +390,78 @@ class LocalizationNode:
         return None
 
     def on_initial_pose(self, req: InitialPoseRequest) -> Reply:
-        """Set the initial pose; one that took effect is published as service events (a replay issues it again)."""
+        """Set the initial pose, at once or (``at_scan_stamp``) just before the filter runs on that scan; one that
+        took effect (or was scheduled) is published as service events (a replay issues it again)."""
+        problem = self._initial_pose_problem(req)
+        if problem is not None:
+            return problem
+        if req.stamp <= 0:  # given now: scans taken before now predate it, also when it is applied later
+            req = msgspec.structs.replace(req, stamp=self.ctx.clock.now())
+        at_ns = _ns(req.at_scan_stamp) if req.at_scan_stamp > 0 else None
+        if at_ns is not None and (self._last_scan_ns is None or at_ns > self._last_scan_ns):
+            p = req.pose
+            reply = Reply(ok=True, message=f"initial pose ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}) will be set on the "
+                                           f"scan stamped {req.at_scan_stamp:.9f} s")
+            self._at_scan.append((at_ns, self._took_effect("localization/initial_pose", req), req, reply))
+            self._at_scan.sort(key=lambda item: item[:2])
+            return reply
+        if at_ns is not None:  # that scan went through the filter already: now, as close to it as there is
+            self.stats["initial_poses_late"] += 1
+            self.log.warning("initial pose for the scan stamped %.9f s came after it: set now", req.at_scan_stamp)
         reply = self._set_initial_pose(req)
         if reply.ok:
             self._awaiting_scan.append(("localization/initial_pose",
                                         self._took_effect("localization/initial_pose", req), reply))
         return reply
 
-    def _set_initial_pose(self, req: InitialPoseRequest) -> Reply:
+    def _apply_due(self, scan_ns: int) -> None:
+        """Set the scheduled initial poses whose scan (the first stamped at or after theirs) is ``scan_ns``, just
+        before the filter runs on it; the scan answers them (response_sent)."""
+        if self._nomotion_at_ns is not None and self._nomotion_at_ns <= scan_ns and self.amcl is not None:
+            self._nomotion_at_ns = None
+            self.amcl.request_nomotion_update(refine=True)
+        while self._at_scan and self._at_scan[0][0] <= scan_ns:
+            _, sequence, req, scheduled = self._at_scan.pop(0)
+            reply = self._set_initial_pose(req)
+            self._awaiting_scan.append(("localization/initial_pose", sequence, reply if not reply.ok else scheduled))
+
+    def _initial_pose_problem(self, req: InitialPoseRequest) -> Reply | None:
+        """Why ``req`` cannot be used (a refusal naming it), or None."""
         if (problem := self._no_map()) is not None:
             return problem
-        assert self.amcl is not None and self.grid is not None
+        assert self.grid is not None
         p = req.pose
         if not _finite(p.x, p.y, p.theta):
             return Reply(ok=False, message=f"initial pose ({p.x}, {p.y}, {p.theta}) is not finite")
+        if req.covariance and (len(req.covariance) != 9 or not _finite(*req.covariance)):
+            return Reply(ok=False, message="covariance must be 9 finite numbers (3x3 over x, y, theta)")
+        if not math.isfinite(req.at_scan_stamp) or req.at_scan_stamp < 0:
+            return Reply(ok=False, message=f"at_scan_stamp {req.at_scan_stamp} must be 0 (now) or a scan stamp (s)")
+        if not math.isfinite(req.stamp) or req.stamp < 0:
+            return Reply(ok=False, message=f"stamp {req.stamp} must be 0 (now) or a time on the robot's clock (s)")
+        col, row = self.grid.world_to_cell(np.array([p.x]), np.array([p.y]))
+        if not (0 <= int(col[0]) < self.grid.width and 0 <= int(row[0]) < self.grid.height):
+            return Reply(ok=False, message=f"initial pose ({p.x:.3f}, {p.y:.3f}) lies outside the map")
+        return None
+
+    def _set_initial_pose(self, req: InitialPoseRequest) -> Reply:
+        if (problem := self._initial_pose_problem(req)) is not None:
+            return problem
+        assert self.amcl is not None and self.grid is not None
+        p = req.pose
         if req.covariance:
-            if len(req.covariance) != 9 or not _finite(*req.covariance):
-                return Reply(ok=False, message="covariance must be 9 finite numbers (3x3 over x, y, theta)")
             cov = np.asarray(req.covariance, dtype=float).reshape(3, 3)
         else:
             cfg = self.cfg
             cov = np.diag([cfg.initial_cov_xx, cfg.initial_cov_yy, cfg.initial_cov_aa])
-        col, row = self.grid.world_to_cell(np.array([p.x]), np.array([p.y]))
-        c, r = int(col[0]), int(row[0])
-        if not (0 <= c < self.grid.width and 0 <= r < self.grid.height):
-            return Reply(ok=False, message=f"initial pose ({p.x:.3f}, {p.y:.3f}) lies outside the map")
         try:
-            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov, stamp_s=self.ctx.clock.now())
+            self.amcl.set_initial_pose((p.x, p.y, p.theta), cov,
+                                       stamp_s=req.stamp if req.stamp > 0 else self.ctx.clock.now())
         except ValueError as exc:
             return Reply(ok=False, message=str(exc))
         self._localizing_from((p.x, p.y, p.theta))
-        note = "" if self.grid.data[r, c] == FREE else " (note: that cell is not free in the map)"
+        col, row = self.grid.world_to_cell(np.array([p.x]), np.array([p.y]))
+        note = "" if self.grid.data[int(row[0]), int(col[0])] == FREE else " (note: that cell is not free in the map)"
         self.log.info("initial pose set to (%.3f, %.3f, %.3f)%s", p.x, p.y, p.theta, note)
         return Reply(ok=True, message=f"initial pose set to ({p.x:.3f}, {p.y:.3f}, {p.theta:.3f}){note}")
 
@@ -419,16 +476,23 @@ class LocalizationNode:
         self._awaiting_scan.append(("localization/global", self._took_effect("localization/global", _req), reply))
         return reply
 
-    async def on_nomotion(self, req: Empty) -> LocalizationUpdate:
-        """Update the filter without motion on the next scan, refine at rest, and answer with the result once it is
-        published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is withdrawn and the answer says so)."""
+    async def on_nomotion(self, req: NoMotionRequest) -> LocalizationUpdate:
+        """Update the filter without motion on the next scan (``at_scan_stamp``: on that scan), refine at rest, and
+        answer with the result once it is published (``NOMOTION_ANSWER_TIMEOUT_S`` at most: then the request is
+        withdrawn and the answer says so)."""
         if (problem := self._no_map()) is not None:
             return LocalizationUpdate(ok=False, message=problem.message)
         assert self.amcl is not None
         if not self.initialised:
             return LocalizationUpdate(ok=False,
                                       message="not localized yet: set an initial pose or start global localization")
-        if len(self.scans):  # the waiting scans were taken before the request: it runs on one received after it
+        if not math.isfinite(req.at_scan_stamp) or req.at_scan_stamp < 0:
+            return LocalizationUpdate(ok=False, message=f"at_scan_stamp {req.at_scan_stamp} must be 0 (the next "
+                                                        f"scan) or a scan stamp (s)")
+        at_ns = _ns(req.at_scan_stamp) if req.at_scan_stamp > 0 else None
+        if at_ns is not None and (self._last_scan_ns is None or at_ns > self._last_scan_ns):
+            self._nomotion_at_ns = at_ns  # that scan may still be on its way, or wait in the queue
+        elif len(self.scans):  # the waiting scans were taken before the request: it runs on one received after it
             self._update_after = self.scans.waiting[-1]
         else:
             self.amcl.request_nomotion_update(refine=True)
@@ -467,6 +531,7 @@ class LocalizationNode:
                 self._update_waiters.remove(fut)
             if not self._update_waiters and self.amcl is not None:
                 self._update_after = None
+                self._nomotion_at_ns = None
                 self.amcl.withdraw_nomotion_request()
             return LocalizationUpdate(ok=False, message=f"no scan reached the filter within "
                                                         f"{NOMOTION_ANSWER_TIMEOUT_S:g} s: the update is withdrawn")

@@ -24,8 +24,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
+from services.common import gridops
 from services.nav.costmap import INSCRIBED, LETHAL, MAX_NON_OBSTACLE, NO_INFORMATION, Costmap2D
 
 try:
@@ -92,7 +92,7 @@ class AStarPlanner:
 
     def _escape(self, cost: np.ndarray, start: tuple[int, int]) -> np.ndarray:
         """The inscribed cells 8-connected to the start's inscribed cell (which the search may leave through)."""
-        labels, _ = ndimage.label(cost == INSCRIBED, structure=np.ones((3, 3)))
+        labels, _ = gridops.label(cost == INSCRIBED)
         escape: np.ndarray = labels == labels[start]
         return escape
 

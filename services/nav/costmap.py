@@ -10,8 +10,8 @@ layer never has to undo what another wrote.
 
 Inflation: with d the distance (m) from a cell centre to the nearest lethal cell centre,
 ``cost = 254`` at d = 0, ``253`` for d <= inscribed radius, ``252 * exp(-cost_scaling_factor * (d - inscribed))`` up to
-``inflation_radius``, 0 beyond. d comes from an exact Euclidean distance transform (scipy.ndimage), computed on the
-window of the update bounds grown by the inflation radius.
+``inflation_radius``, 0 beyond. d comes from an exact Euclidean distance transform (``services.common.gridops``),
+computed on the window of the update bounds grown by the inflation radius.
 """
 
 from __future__ import annotations
@@ -20,7 +20,8 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage
+
+from services.common import gridops
 
 FREE = 0
 MAX_NON_OBSTACLE = 252
@@ -370,7 +371,7 @@ class InflationLayer:
         if not source.any():
             self.distance_m[i0:i1, j0:j1] = np.inf
             return
-        d = ndimage.distance_transform_edt(~source, sampling=master.resolution)
+        d = gridops.distance_transform_edt(~source, sampling=master.resolution)
         d = d[i0 - wi0:i1 - wi0, j0 - wj0:j1 - wj0]
         self.distance_m[i0:i1, j0:j1] = d
         inflated = self.cost_of_distance(d)
@@ -442,7 +443,7 @@ class GlobalCostmap(LayeredCostmap):
             self.obstacles.ignore = None
             walls = self.static.grid.cost == LETHAL if self.static.grid is not None else None
             if self.static_wall_tolerance_m > 0 and walls is not None and walls.any():
-                self.obstacles.ignore = (ndimage.distance_transform_edt(~walls, sampling=resolution)
+                self.obstacles.ignore = (gridops.distance_transform_edt(~walls, sampling=resolution)
                                          <= self.static_wall_tolerance_m + 1e-6)
         self.inflation.distance_m = None
         self._full = True

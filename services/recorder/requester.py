@@ -14,7 +14,7 @@ import zenoh
 from proto import codec
 from proto.messages import ServiceEvent
 from services.common.service_events import event_topic
-from services.recorder.service_requests import RecordedRequest
+from services.recorder.service_requests import RecordedRequest, replay_payload
 
 #: wall s a re-issued request's reply may take after the service took it (localization/nomotion answers on the next
 #: scan, which the replay publishes only once the request was taken)
@@ -65,10 +65,11 @@ class ServiceRequester:
             before = self.received[req.query]
         done = threading.Event()
         retry_s = 0.05
+        payload = replay_payload(req)
         while True:
             done.clear()
             self.session.get(self.keys(req.query), zenoh.handlers.Callback(_ignore_reply, done.set),
-                             payload=req.request, timeout=self.timeout_s + NOMOTION_REPLY_S)
+                             payload=payload, timeout=self.timeout_s + NOMOTION_REPLY_S)
             with self.cond:
                 while self.received[req.query] == before and not done.is_set() and time.monotonic() < deadline:
                     self.cond.wait(0.01)

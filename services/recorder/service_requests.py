@@ -10,6 +10,11 @@ them into ``RecordedRequest`` s; ``RequestSchedule.due`` says which to issue bef
   service's ``request_received`` before going on);
 - any other request (no response recorded, or its input topic is not played) before the first message logged at or
   after its ``request_received`` event, as rosbag2 does.
+
+A request whose type says on which scan it is to take effect (``at_scan_stamp``: ``localization/initial_pose``) is
+issued again with the stamp of the scan it was served on live (``replay_payload``): the service applies it just
+before that scan however many earlier scans are still on their way, which issuing it at the right point of the
+stream alone does not guarantee.
 """
 
 from __future__ import annotations
@@ -18,6 +23,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import msgspec
+
+from proto import codec
 from proto.messages import ServiceEvent
 from services.common.service_events import query_of
 from services.recorder.rosconv import stamp_to_ns
@@ -36,6 +44,26 @@ class RecordedRequest:
     log_ns: int
     input_topic: str = ""
     input_stamp_s: float = 0.0
+    received_stamp_s: float = 0.0  # the service's clock when it took the request (its request_received event)
+
+
+def replay_payload(req: RecordedRequest) -> bytes:
+    """The payload to issue ``req`` again with: its recorded request, with ``at_scan_stamp`` set to the scan it was
+    served on and ``stamp`` to when the service took it live, where its type has those fields."""
+    req_type, _ = codec.query_types(req.query)
+    fields = req_type.__struct_fields__
+    changes: dict[str, float] = {}
+    if req.input_topic == "scan" and req.input_stamp_s > 0 and "at_scan_stamp" in fields:
+        changes["at_scan_stamp"] = req.input_stamp_s
+    if req.received_stamp_s > 0 and "stamp" in fields:
+        changes["stamp"] = req.received_stamp_s
+    if not changes:
+        return req.request
+    try:
+        msg = codec.decode_as(req_type, req.request)
+    except codec.ProtoDecodeError:  # issued as recorded: the service refuses it with the reason
+        return req.request
+    return codec.encode(msgspec.structs.replace(msg, **changes))
 
 
 def collect(events: Iterable[tuple[int, str, ServiceEvent]]) -> list[RecordedRequest]:
@@ -48,7 +76,7 @@ def collect(events: Iterable[tuple[int, str, ServiceEvent]]) -> list[RecordedReq
         if query is None:
             continue
         if ev.event == "request_received":
-            received = RecordedRequest(query, ev.sequence, ev.request, log_ns)
+            received = RecordedRequest(query, ev.sequence, ev.request, log_ns, received_stamp_s=ev.stamp)
             requests.append(received)
             latest[(query, ev.sequence)] = received
         elif (answered := latest.get((query, ev.sequence))) is not None and ev.input_topic and ev.input_stamp > 0:

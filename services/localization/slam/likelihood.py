@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 
 @dataclass
@@ -45,6 +44,8 @@ class LikelihoodGrid:
         weights = np.concatenate([(1 - fu) * (1 - fv), fu * (1 - fv), (1 - fu) * fv, fu * fv]).astype(np.float32)
         hits = np.zeros((shape[1], shape[0]), np.float32)
         np.maximum.at(hits.ravel(), rows * shape[0] + cols, weights)
+        from scipy import ndimage  # here: mapping mode only; importing it costs about 30 MB resident
+
         blurred = ndimage.gaussian_filter(hits, sigma_cells, truncate=3.0)
         field = np.minimum(blurred * (np.sqrt(2.0 * np.pi) * sigma_cells), 1.0).astype(np.float32)
         return cls(field, lo.astype(float), float(resolution_m))
