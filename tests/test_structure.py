@@ -6,8 +6,9 @@ import re
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-#: the one optional import: A*'s C extension, built at install when a compiler is present (pure Python otherwise)
-OPTIONAL_IMPORTS = {"services/nav/astar.py"}
+#: the optional imports: the C extensions built at install when a compiler is present, each with a fallback that
+#: computes the same result (A*'s pure-Python loop; scipy.ndimage for the grid distance transform and labelling)
+OPTIONAL_IMPORTS = {"services/nav/astar.py", "services/common/gridops.py"}
 
 
 def python_files(*folders: str) -> list[tuple[str, str]]:
