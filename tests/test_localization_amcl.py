@@ -197,16 +197,24 @@ def test_odom_history_interpolates_and_bounds():
     assert list(h.stamps) == [12.0]
 
 
-def test_reanchor_after_an_odometry_restart_keeps_the_map_pose():
+MOUNT = (0.45, 0.0, 0.0)
+
+
+def room_filter(seed: int):
+    """AMCL on the room's map and the beams a laser at MOUNT sees from a pose of the room."""
     world, grid = room()
-    params = AmclParams(random_seed=2)
-    amcl = Amcl(grid, params)
+    params = AmclParams(random_seed=seed)
     laser = Laser(world)
-    mount = (0.45, 0.0, 0.0)
 
     def beams(pose):
-        return select_beams(laser.scan(pose, mount), laser.angle_min, laser.angle_increment, 0.05, 20.0, params)
+        return select_beams(laser.scan(pose, MOUNT), laser.angle_min, laser.angle_increment, 0.05, 20.0, params)
 
+    return Amcl(grid, params), beams
+
+
+def test_reanchor_after_an_odometry_restart_keeps_the_map_pose():
+    amcl, beams = room_filter(2)
+    mount = MOUNT
     amcl.set_initial_pose((2.0, 2.0, 0.0), np.diag([0.01, 0.01, 0.01]))
     amcl.process((10.0, -3.0, 1.0), beams((2.0, 2.0, 0.0)), mount)
     amcl.reanchor_odometry()  # drive restarted: odometry starts again at zero, the robot has not moved
@@ -216,15 +224,8 @@ def test_reanchor_after_an_odometry_restart_keeps_the_map_pose():
 
 
 def test_scans_taken_before_the_initial_pose_are_ignored():
-    world, grid = room()
-    params = AmclParams(random_seed=3)
-    amcl = Amcl(grid, params)
-    laser = Laser(world)
-    mount = (0.45, 0.0, 0.0)
-
-    def beams(pose):
-        return select_beams(laser.scan(pose, mount), laser.angle_min, laser.angle_increment, 0.05, 20.0, params)
-
+    amcl, beams = room_filter(3)
+    mount = MOUNT
     amcl.set_initial_pose((2.0, 2.0, 0.0), np.diag([0.01, 0.01, 0.01]), stamp_s=10.0)
     # a scan still in flight from where the robot stood before it was placed (6.5, 3, pi) must not move the filter
     assert not amcl.process((0.0, 0.0, 0.0), beams((6.5, 3.0, math.pi)), mount, stamp=9.9)
