@@ -50,10 +50,12 @@ import numpy as np
 
 from services.common.se2 import between, compose, inverse, transform_points, wrap_angle
 
+from . import uncertainty
 from .constraint import FULLY_CONSTRAINED, MatchConstraint, match_constraint
 from .likelihood import MultiResolutionGrid
 from .matcher import MatchResult, correlative_search, refine, translation_curvature
 from .occupancy import OccupancyGrid
+from .odometry_calibration import OdometryCalibration
 from .pose_graph import PoseGraph
 from .visibility import ViewProfiles
 
@@ -84,6 +86,10 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     weak_match_max_sigma: float = 3.0
     #: a good match held further than this many σ from the odometry prediction marks the odometry step an outlier
     odometry_outlier_sigma: float = 4.0
+    #: take the odometry's systematic error (wheel scale, rotation scale, heading drift per metre), estimated from
+    #: cleanly matched keyframe edges, out of every increment before it predicts (``odometry_calibration.py``)
+    calibrate_odometry: bool = True
+    calibration_horizon_m: float = 200.0
     odom_prior_sigma_xy_m: float = 0.02
     odom_prior_sigma_theta_rad: float = 0.05
     rescue_below_score: float = 0.35
@@ -114,6 +120,12 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_consistency_per_m: float = 0.01
     loop_max_chi2: float = 50.0
     loop_search_radius_m: float = 4.0
+    #: the search radius and the loop correlative window grow by this many σ of the newest keyframe's pose
+    #: uncertainty accumulated since the last accepted closure (``uncertainty.py``), up to the caps below
+    loop_search_sigmas: float = 3.0
+    loop_search_max_radius_m: float = 12.0
+    loop_window_max_xy_m: float = 4.0
+    loop_window_max_theta_rad: float = 0.6
     loop_min_travel_m: float = 8.0
     loop_neighbour_keyframes: int = 12
     loop_min_score: float = 0.55
@@ -197,6 +209,10 @@ class GraphSlam:
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
         self.closures: list[LoopClosure] = []
+        #: Σ of the newest keyframe's pose relative to the last accepted closure (``uncertainty.py``)
+        self.drift_covariance = np.zeros((3, 3))
+        self._anchor_keyframe = 0
+        self._sequential_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe: (step, Σ) from previous
         self.loop_checks = 0
         self.rescued_matches = 0
         self.fallback_matches = 0
@@ -209,6 +225,11 @@ class GraphSlam:
         self._unmatched_rad = 0.0
         self._sensor_origin = np.zeros(2)
         c = self.config
+        self.odometry_calibration = OdometryCalibration(horizon_m=c.calibration_horizon_m)
+        self._keyframe_odom = np.zeros(3)  # raw odometry at the newest keyframe
+        self._odom_turn_since_keyframe_rad = 0.0
+        self._odom_path_since_keyframe_m = 0.0
+        self._clean_since_keyframe = True
         self._odom_prior = np.diag([1 / c.odom_prior_sigma_xy_m**2, 1 / c.odom_prior_sigma_xy_m**2,
                                     1 / c.odom_prior_sigma_theta_rad**2])
         self._sequential_info = np.diag([1 / c.sequential_sigma_xy_m**2, 1 / c.sequential_sigma_xy_m**2,
@@ -414,20 +435,27 @@ class GraphSlam:
         if not self._keyframes:
             pose = odom_pose.copy()
             self._add_keyframe(stamp_s, pose, match_points, map_points, origin, travel_m=0.0)
-            self._last_odom = odom_pose
+            self._last_odom = self._keyframe_odom = odom_pose
             return pose
         assert self._last_odom is not None
         previous = self.current_pose()
-        step = between(self._last_odom, odom_pose)
+        raw_step = between(self._last_odom, odom_pose)
+        self._odom_turn_since_keyframe_rad += float(wrap_angle(raw_step[2]))
+        self._odom_path_since_keyframe_m += float(np.hypot(raw_step[0], raw_step[1]))
+        step = self.odometry_calibration.correct(raw_step) if c.calibrate_odometry else raw_step
         predicted = compose(previous, step)
         self._last_odom = odom_pose
         self.last_constraint = FULLY_CONSTRAINED
+        unusual = (self.rescued_matches, self.odometry_outliers, self.weak_matches, self.fallback_matches)
         if len(match_points) >= 20:
             pose, ok = self._match_local(match_points, predicted, step)
         else:
             pose, ok = predicted, False
             self.fallback_matches += 1
         self.last_match_ok = ok
+        if not ok or self.last_constraint.degenerate or unusual != (self.rescued_matches, self.odometry_outliers,
+                                                                     self.weak_matches, self.fallback_matches):
+            self._clean_since_keyframe = False
         if not ok:
             self._unmatched_m += float(np.hypot(step[0], step[1]))
             self._unmatched_rad += abs(float(wrap_angle(step[2])))
@@ -437,9 +465,14 @@ class GraphSlam:
         self._last_covariance = np.linalg.inv(self._sequential_information(moved))
         if moved >= c.keyframe_distance_m or abs(from_kf[2]) >= c.keyframe_angle_rad:
             travel = self._keyframes[-1].travel_m + moved
+            self._calibrate(odom_pose, from_kf)
             info = self._sequential_information(moved)
             k = self._add_keyframe(stamp_s, pose, match_points, map_points, origin, travel_m=travel)
             self.graph.add_edge(last_kf, k, from_kf, info)
+            edge_covariance = np.linalg.inv(info)
+            self._sequential_edges[k] = (from_kf, edge_covariance)
+            self.drift_covariance = uncertainty.propagate(self.drift_covariance, self.graph.pose(last_kf), from_kf,
+                                                          edge_covariance)
             self._unmatched_m = self._unmatched_rad = 0.0
             self._submap = None
             self._search_loop(k)
@@ -450,6 +483,17 @@ class GraphSlam:
         else:
             self._scans.append(_ScanRecord(stamp_s, last_kf, from_kf))
         return self.current_pose()
+
+    def _calibrate(self, odom_pose: np.ndarray, matched: np.ndarray) -> None:
+        """Feed a keyframe edge to the odometry calibration when every scan since the last keyframe matched
+        cleanly (``matched``: the new keyframe's matched pose relative to the last one), and start the next edge."""
+        if self._clean_since_keyframe:
+            self.odometry_calibration.observe(between(self._keyframe_odom, odom_pose)[:2],
+                                              self._odom_turn_since_keyframe_rad, self._odom_path_since_keyframe_m,
+                                              matched[:2], float(matched[2]))
+        self._keyframe_odom = odom_pose
+        self._odom_turn_since_keyframe_rad = self._odom_path_since_keyframe_m = 0.0
+        self._clean_since_keyframe = True
 
     def _add_keyframe(self, stamp_s: float, pose: np.ndarray, points: np.ndarray, map_points: np.ndarray,
                       origin: np.ndarray, travel_m: float) -> int:
@@ -486,26 +530,33 @@ class GraphSlam:
         dist = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
         dist[~old] = np.inf
         candidate = int(np.argmin(dist))
-        if not np.isfinite(dist[candidate]) or dist[candidate] > c.loop_search_radius_m:
+        sigma_xy = uncertainty.position_sigma_m(self.drift_covariance)
+        radius = uncertainty.scaled(c.loop_search_radius_m, c.loop_search_sigmas, sigma_xy, c.loop_search_max_radius_m)
+        if not np.isfinite(dist[candidate]) or dist[candidate] > radius:
             return
+        window_xy = uncertainty.scaled(c.loop_window_xy_m, c.loop_search_sigmas, sigma_xy, c.loop_window_max_xy_m)
+        window_theta = uncertainty.scaled(c.loop_window_theta_rad, c.loop_search_sigmas,
+                                          uncertainty.heading_sigma_rad(self.drift_covariance),
+                                          c.loop_window_max_theta_rad)
         newest_allowed = int(np.nonzero(old)[0].max())
         grid = self._loop_grid(candidate, newest_allowed)
         points = self._keyframes[k].points
         guess = between(poses[candidate], poses[k])
         result = refine(grid, points, guess)
-        curvature = self._loop_curvature(grid, points, result, guess)
+        curvature = self._loop_curvature(grid, points, result, guess, window_xy, window_theta)
         accepted = curvature is not None
         recently_closed = k - self._last_loop_keyframe <= 2 * c.loop_search_every_keyframes
         if not accepted and not recently_closed and k - self._last_loop_search >= c.loop_search_every_keyframes:
             self._last_loop_search = k
             best: MatchResult | None = None
-            for _, pose in correlative_search(grid.levels[-1], points, guess, window_xy_m=c.loop_window_xy_m,
-                                              window_theta_rad=c.loop_window_theta_rad,
+            for _, pose in correlative_search(grid.levels[-1], points, guess, window_xy_m=window_xy,
+                                              window_theta_rad=window_theta,
                                               theta_step_rad=c.loop_theta_step_rad, n_best=4):
                 trial = refine(grid, points, pose)
                 if best is None or trial.score > best.score:
                     best = trial
-            best_curvature = None if best is None else self._loop_curvature(grid, points, best, guess)
+            best_curvature = None if best is None else self._loop_curvature(grid, points, best, guess, window_xy,
+                                                                            window_theta)
             if best is not None and best_curvature is not None:
                 result, curvature, accepted = best, best_curvature, True
         if not accepted or curvature is None:
@@ -528,8 +579,22 @@ class GraphSlam:
         closure.edge = self.graph.add_edge(closure.from_, closure.to, closure.measurement, information,
                                            robust_scale=self.config.loop_robust_scale)
         closure.state = "accepted"
+        self._anchor(closure.to, np.linalg.inv(information))
         self._loops_since_optimize += 1
         self._correction_since_optimize = max(self._correction_since_optimize, closure.correction)
+
+    def _anchor(self, keyframe: int, covariance: np.ndarray) -> None:
+        """An accepted closure ties ``keyframe`` to the map with ``covariance``: the newest keyframe's uncertainty
+        restarts from there, propagated along the sequential edges since (unless a later keyframe is anchored)."""
+        if keyframe < self._anchor_keyframe:
+            return
+        self._anchor_keyframe = keyframe
+        poses = self.graph.poses()
+        for k in range(keyframe + 1, self.graph.n_nodes):
+            edge = self._sequential_edges.get(k)
+            if edge is not None:
+                covariance = uncertainty.propagate(covariance, poses[k - 1], edge[0], edge[1])
+        self.drift_covariance = covariance
 
     def _path_length(self, a: int, b: int) -> float:
         lo, hi = min(a, b), max(a, b)
@@ -562,13 +627,14 @@ class GraphSlam:
                 p.state, p.reason = "rejected", "no consistent closure"
 
     def _loop_curvature(self, grid: MultiResolutionGrid, points: np.ndarray, result: MatchResult,
-                        guess: np.ndarray) -> np.ndarray | None:
+                        guess: np.ndarray, window_xy_m: float, window_theta_rad: float) -> np.ndarray | None:
         """The loop match's translation curvature when the match is good enough to be a candidate (score, offset
-        from the guess, and the smallest curvature at least ``loop_min_sharpness``), else None."""
+        from the guess within the search window, and the smallest curvature at least ``loop_min_sharpness``), else
+        None."""
         c = self.config
         offset = np.hypot(*(result.pose[:2] - guess[:2]))
-        if result.score < c.loop_min_score or offset > c.loop_window_xy_m + 0.5 or \
-                abs(wrap_angle(result.pose[2] - guess[2])) > c.loop_window_theta_rad + 0.1:
+        if result.score < c.loop_min_score or offset > window_xy_m + 0.5 or \
+                abs(wrap_angle(result.pose[2] - guess[2])) > window_theta_rad + 0.1:
             return None
         curvature = translation_curvature(grid.levels[0], points, result.pose)
         self.loop_checks += 1
