@@ -103,7 +103,7 @@ def test_an_accepted_closure_anchors_the_uncertainty():
     """The newest keyframe's uncertainty grows with every keyframe edge; a closure accepted at an earlier keyframe
     restarts it from the closure's covariance, propagated over the edges since."""
     scan = _scanner(ROOM)
-    slam = GraphSlam()
+    slam = GraphSlam(SlamConfig(loop_search_sigmas=3.0))
     traces = []
     for k in range(30):
         pose = np.array([-2.5 + 0.15 * k, -0.5, 0.0])
