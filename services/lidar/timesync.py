@@ -14,7 +14,9 @@ to the truth (the passive synchronisation of Olson 2010, the lower envelope ROS 
 quantile rather than the minimum keeps one telegram whose receive time ran behind its transmission (a simulated clock
 read late, a host clock stepped back) from pulling every stamp early. A median would put the typical delivery delay
 into every stamp: under load, scans delivered 0.5 s late would be stamped 0.5 s late and placed with the odometry of
-a pose the robot had already moved past. The window of ``window`` telegrams follows the drift of the device clock.
+a pose the robot had already moved past. The window of ``window`` telegrams follows the drift of the device clock;
+the estimate rises by at most ``max_drift`` s per s of device time (a quartz drifts by 10-100 ppm), so that a spell
+of load longer than the window neither stamps its scans late nor, when it ends, sends the stamps back in time.
 A telegram received at the very same service-clock time as the one before came while that clock stood still (a
 simulated clock not advanced while telegrams arrived; a wall clock reads differently on every read, also in a
 burst): its receive time says nothing about when it was sent, and it is left out of the estimate. A candidate more
@@ -32,12 +34,16 @@ class DeviceClockSync:
     """Maps the scanner's µs counters onto the service clock; one instance per connection (the device may reboot)."""
 
     def __init__(self, window: int = 250, reset_s: float = 5.0, max_delay_s: float = 0.5,
-                 quantile: float = 0.05) -> None:
+                 quantile: float = 0.05, max_drift: float = 2e-4) -> None:
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
         if not 0.0 <= quantile <= 0.5:
             raise ValueError(f"quantile must be within [0, 0.5], got {quantile}")
+        if max_drift < 0.0:
+            raise ValueError(f"max_drift must be >= 0, got {max_drift}")
         self.quantile = quantile
+        self.max_drift = max_drift
+        self._estimate_s: float | None = None
         self.window = window
         self.reset_s = reset_s
         self.max_delay_s = max_delay_s
@@ -55,6 +61,9 @@ class DeviceClockSync:
     @property
     def offset_s(self) -> float | None:
         """The current estimate of service clock minus device clock (s); None before the first telegram."""
+        return self._estimate_s
+
+    def _window_quantile(self) -> float | None:
         if not self.offsets_s:
             return None
         ordered = sorted(o for _, o in self.offsets_s)
@@ -62,8 +71,10 @@ class DeviceClockSync:
 
     def stamp(self, receive_s: float, first_beam_us: int, transmission_us: int) -> float:
         """The first beam's time on the service clock (s), from its receive time and the two device counters."""
+        tx_step_s = 0.0
         if self._last_tx_us is not None:
-            self._tx_s += ((transmission_us - self._last_tx_us) % U32) * 1e-6
+            tx_step_s = ((transmission_us - self._last_tx_us) % U32) * 1e-6
+            self._tx_s += tx_step_s
         self._last_tx_us = transmission_us
         delay_s = ((transmission_us - first_beam_us) % U32) * 1e-6
         if delay_s > self.max_delay_s:  # implausible (a counter reset between the two): use the transmission time
@@ -73,7 +84,7 @@ class DeviceClockSync:
         if current is not None and abs(offset_s - current) > self.reset_s:
             self.offsets_s.clear()
             self.resets += 1
-            current = None
+            current = self._estimate_s = None
         moved = current is None or self._last_receive_s is None or receive_s > self._last_receive_s
         self._last_receive_s = receive_s
         self._count += 1
@@ -83,7 +94,10 @@ class DeviceClockSync:
             self.offsets_s.append((self._count, offset_s))
         else:
             self.stalled += 1
-        estimate = self.offset_s
+        estimate = self._window_quantile()
         if estimate is None:  # the clock stood still for the whole window: this offset is all there is
             estimate = offset_s
+        if current is not None:
+            estimate = min(estimate, current + self.max_drift * tx_step_s)
+        self._estimate_s = estimate
         return self._tx_s - delay_s + estimate
