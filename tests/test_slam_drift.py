@@ -11,7 +11,7 @@ import pytest
 from services.common.se2 import between, compose
 from services.localization.slam.mapper import GraphSlam, LoopClosure, SlamConfig
 from services.localization.slam.odometry_calibration import OdometryCalibration
-from services.localization.slam.uncertainty import position_sigma_m, propagate, scaled
+from services.localization.slam.search_gate import position_sigma_m, propagate, scaled
 from tests.test_slam_constraint import ROOM, _scanner
 
 

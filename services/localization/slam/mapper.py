@@ -29,11 +29,11 @@ the graph along it. With ``match_visibility_margin_m`` > 0 (opt-in), scan points
 never looked at are left out of the match (``visibility.py``).
 
 A scan that moved far enough becomes a keyframe: a pose-graph node linked to the previous keyframe by the matched
-relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path; opt-in, within a radius
-that grows with the pose uncertainty accumulated since the last accepted closure, ``uncertainty.py``); it is matched
-against that keyframe's neighbourhood (refinement from the current estimate, then a wide correlative search if that
-fails) and the match becomes a loop-closure *candidate* only when its score is high and the scan fixes both
-translation directions.
+relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path; opt-in, within
+a radius that grows with the pose uncertainty accumulated since the last accepted closure, ``search_gate.py``); it
+is matched against that keyframe's neighbourhood (refinement from the current estimate, then a wide correlative
+search if that fails) and the match becomes a loop-closure *candidate* only when its score is high and the scan
+fixes both translation directions.
 
 Back end: a candidate that agrees with the graph (its correction is below ``loop_trusted_xy_m`` /
 ``loop_trusted_theta_rad``) is accepted at once. One that would bend the graph further is held pending until another
@@ -55,7 +55,7 @@ import numpy as np
 
 from services.common.se2 import between, compose, inverse, transform_points, wrap_angle
 
-from . import uncertainty
+from . import search_gate
 from .constraint import FULLY_CONSTRAINED, MatchConstraint, match_constraint
 from .likelihood import MultiResolutionGrid
 from .matcher import MatchResult, correlative_search, refine, translation_curvature
@@ -126,7 +126,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_max_chi2: float = 50.0
     loop_search_radius_m: float = 4.0
     #: > 0 (opt-in): the search radius and the loop correlative window grow by this many σ of the newest keyframe's
-    #: pose uncertainty accumulated since the last accepted closure (``uncertainty.py``), up to the caps below. Off
+    #: pose uncertainty accumulated since the last accepted closure (``search_gate.py``), up to the caps below. Off
     #: by default: at 3 σ it found fewer accepted closures, not more (edmonton 28 -> 20, fhw 170 -> 160) and MIT CSAIL
     #: went from 0.0341 to 0.0375 m; the revisits the fixed radius misses are few (edmonton: 31 keyframes within
     #: 1.5 m of an earlier one by the reference, 24 of them closed)
@@ -217,7 +217,7 @@ class GraphSlam:
         self._last_loop_keyframe = -(10**9)
         self._last_loop_search = -(10**9)
         self.closures: list[LoopClosure] = []
-        #: Σ of the newest keyframe's pose relative to the last accepted closure (``uncertainty.py``)
+        #: Σ of the newest keyframe's pose relative to the last accepted closure (``search_gate.py``)
         self.drift_covariance = np.zeros((3, 3))
         self._anchor_keyframe = 0
         self._sequential_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe: (step, Σ) from previous
@@ -479,7 +479,7 @@ class GraphSlam:
             self.graph.add_edge(last_kf, k, from_kf, info)
             edge_covariance = np.linalg.inv(info)
             self._sequential_edges[k] = (from_kf, edge_covariance)
-            self.drift_covariance = uncertainty.propagate(self.drift_covariance, self.graph.pose(last_kf), from_kf,
+            self.drift_covariance = search_gate.propagate(self.drift_covariance, self.graph.pose(last_kf), from_kf,
                                                           edge_covariance)
             self._unmatched_m = self._unmatched_rad = 0.0
             self._submap = None
@@ -538,13 +538,13 @@ class GraphSlam:
         dist = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
         dist[~old] = np.inf
         candidate = int(np.argmin(dist))
-        sigma_xy = uncertainty.position_sigma_m(self.drift_covariance)
-        radius = uncertainty.scaled(c.loop_search_radius_m, c.loop_search_sigmas, sigma_xy, c.loop_search_max_radius_m)
+        sigma_xy = search_gate.position_sigma_m(self.drift_covariance)
+        radius = search_gate.scaled(c.loop_search_radius_m, c.loop_search_sigmas, sigma_xy, c.loop_search_max_radius_m)
         if not np.isfinite(dist[candidate]) or dist[candidate] > radius:
             return
-        window_xy = uncertainty.scaled(c.loop_window_xy_m, c.loop_search_sigmas, sigma_xy, c.loop_window_max_xy_m)
-        window_theta = uncertainty.scaled(c.loop_window_theta_rad, c.loop_search_sigmas,
-                                          uncertainty.heading_sigma_rad(self.drift_covariance),
+        window_xy = search_gate.scaled(c.loop_window_xy_m, c.loop_search_sigmas, sigma_xy, c.loop_window_max_xy_m)
+        window_theta = search_gate.scaled(c.loop_window_theta_rad, c.loop_search_sigmas,
+                                          search_gate.heading_sigma_rad(self.drift_covariance),
                                           c.loop_window_max_theta_rad)
         newest_allowed = int(np.nonzero(old)[0].max())
         grid = self._loop_grid(candidate, newest_allowed)
@@ -601,7 +601,7 @@ class GraphSlam:
         for k in range(keyframe + 1, self.graph.n_nodes):
             edge = self._sequential_edges.get(k)
             if edge is not None:
-                covariance = uncertainty.propagate(covariance, poses[k - 1], edge[0], edge[1])
+                covariance = search_gate.propagate(covariance, poses[k - 1], edge[0], edge[1])
         self.drift_covariance = covariance
 
     def _path_length(self, a: int, b: int) -> float:

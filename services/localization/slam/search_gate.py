@@ -22,17 +22,16 @@ import math
 
 import numpy as np
 
+from services.localization.uncertainty import motion_jacobians
+
 
 def propagate(covariance: np.ndarray, pose: np.ndarray, step: np.ndarray, step_covariance: np.ndarray) -> np.ndarray:
     """Σ' (3x3) of ``pose`` ⊕ ``step`` given Σ of ``pose`` (world frame) and Σ_u of ``step`` (frame of ``pose``)."""
-    theta = float(pose[2])
-    c, s = math.cos(theta), math.sin(theta)
-    ux, uy = float(step[0]), float(step[1])
-    j_pose = np.array([[1.0, 0.0, -s * ux - c * uy], [0.0, 1.0, c * ux - s * uy], [0.0, 0.0, 1.0]])
-    j_step = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    j_pose, j_step = motion_jacobians(float(pose[2]), (float(step[0]), float(step[1]), float(step[2])))
     out: np.ndarray = j_pose @ np.asarray(covariance, float) @ j_pose.T + j_step @ np.asarray(step_covariance,
                                                                                           float) @ j_step.T
-    return 0.5 * (out + out.T)
+    symmetric: np.ndarray = 0.5 * (out + out.T)
+    return symmetric
 
 
 def position_sigma_m(covariance: np.ndarray) -> float:
