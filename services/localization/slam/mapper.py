@@ -96,7 +96,8 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     #: Corrected CARMEN logs (ATE RMS, ``OdometryNoise.for_reference(1)``), without -> with: edmonton 0.621 -> 0.447,
     #: aces 0.208 -> 0.097, fhw 0.215 -> 0.187, belgioioso 0.172 -> 0.126, orebro 0.156 -> 0.100, seattle
     #: 0.132 -> 0.058, csail 0.112 -> 0.119, freiburg-101 0.075 -> 0.070, acapulco 0.189 -> 0.127, infinite-corridor
-    #: 2.135 -> 1.594; relations: MIT CSAIL 0.0341 -> 0.0339, FR079 0.0488 -> 0.0474, ACES 0.0367 -> 0.0364
+    #: 2.135 -> 1.594, freiburg-campus 0.288 -> 0.261, freiburg-079 0.083 -> 0.085; relations: MIT CSAIL (.clf)
+    #: 0.0341 -> 0.0342, FR079 0.0488 -> 0.0474, ACES 0.0367 -> 0.0364
     calibrate_odometry: bool = True
     calibration_horizon_m: float = 200.0
     odom_prior_sigma_xy_m: float = 0.02
@@ -132,7 +133,7 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     #: > 0 (opt-in): the search radius and the loop correlative window grow by this many σ of the newest keyframe's
     #: pose uncertainty accumulated since the last accepted closure (``search_gate.py``), up to the caps below. Off
     #: by default: at 3 σ it found fewer accepted closures, not more (edmonton 28 -> 20, fhw 170 -> 160) and MIT CSAIL
-    #: went from 0.0341 to 0.0375 m; the revisits the fixed radius misses are few (edmonton: 31 keyframes within
+    #: (bag) went from 0.0340 to 0.0375 m; the revisits the fixed radius misses are few (edmonton: 31 keyframes within
     #: 1.5 m of an earlier one by the reference, 24 of them closed)
     loop_search_sigmas: float = 0.0
     loop_search_max_radius_m: float = 12.0
