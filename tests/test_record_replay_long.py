@@ -118,7 +118,8 @@ def test_fr079_ros1_bag_replayed_into_live_slam(tmp_path: Path, shared_dir: Path
         replay_s = time.monotonic() - t0
         # the mapper has handled the last scan once its map -> odom (stamped with that scan) is out
         wait_for_sync(lambda: map_odom and map_odom[-1].stamp >= last_scan_s - 1e-6, timeout_s=3600.0)
-        stats = _stats(session, stack.keys, "localization")["mapping"]
+        all_stats = _stats(session, stack.keys, "localization")
+        stats = all_stats["mapping"]
         reply = asyncio.run(query(session, stack.keys, "localization/save_map", m.SaveMapRequest(name="fr079_live"),
                                   timeout_s=60.0))
         assert reply.ok, reply.message
@@ -143,7 +144,8 @@ def test_fr079_ros1_bag_replayed_into_live_slam(tmp_path: Path, shared_dir: Path
           f"{live['translation_mean_m']:.4f} m / {live['rotation_mean_rad']:.4f} rad over {live['n_relations']} "
           f"relations vs offline {offline['translation_mean_m']:.4f} m / {offline['rotation_mean_rad']:.4f} rad over "
           f"{offline['n_relations']}; published online estimate {online.translation_mean_m:.4f} m / "
-          f"{online.rotation_mean_rad:.4f} rad; mapping stats {stats}")
+          f"{online.rotation_mean_rad:.4f} rad; mapping stats {stats}; scans in the log {len(log.scans)}, "
+          f"received by Zenoh {all_stats['received']}, delivered on the loop {all_stats['delivered']}")
     assert len(maps) >= 3 and maps[-1] > maps[0]  # built live
     assert live["n_relations"] >= 0.95 * offline["n_relations"]  # (nearly) every scan reached the mapper
     assert live["translation_mean_m"] <= 1.10 * offline["translation_mean_m"]
