@@ -10,11 +10,8 @@ router forwards one link's messages in order, so once the sentinel is in, the de
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import signal
 import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -24,6 +21,7 @@ import zenoh
 
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from tests.support.router import RouterProcess
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 
@@ -73,47 +71,18 @@ def local_client(tcp_port: int) -> zenoh.Session:
     return open_session(ZenohSettings(mode="peer", connect=[f"tcp/127.0.0.1:{tcp_port}"]))
 
 
-class Router:
-    """``python -m services.cli router --config FILE`` with its output kept for the failure report."""
-
-    def __init__(self, config_path: Path) -> None:
-        env = {**os.environ, "PYTHONPATH": str(REPO_ROOT), "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--config", str(config_path)],
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     cwd=REPO_ROOT, env=env, start_new_session=True)
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout
-        for raw in self.proc.stdout:
-            self.lines.append(raw.decode(errors="replace").rstrip())
-
-    def output(self) -> str:
-        return "\n".join(self.lines[-40:])
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait()
-
-
 @pytest.fixture
-def acl_router(tmp_path: Path) -> Iterator[tuple[Path, int, int, Router]]:
+def acl_router(tmp_path: Path) -> Iterator[tuple[Path, int, int, RouterProcess]]:
     cert_dir = tmp_path / "tls"
     make_certs(cert_dir)
     tcp_port, tls_port = free_port(), free_port()
     config_path = tmp_path / "router.json5"
     config_path.write_text(json.dumps(router_config(cert_dir, tcp_port, tls_port), indent=1))
-    router = Router(config_path)
+    router = RouterProcess(["--config", str(config_path)]).start()
     try:
-        wait_for_sync(lambda: any("listening on" in line for line in router.lines) or router.proc.poll() is not None,
+        wait_for_sync(lambda: any("listening on" in line for line in router.lines) or not router.running(),
                       timeout_s=30, message="router did not start")
-        assert router.proc.poll() is None, f"router exited:\n{router.output()}"
+        assert router.running(), f"router exited:\n{router.output()}"
         assert f"tls/127.0.0.1:{tls_port}" in router.output(), "router ignored the config file's endpoints"
         yield cert_dir, tcp_port, tls_port, router
     finally:
@@ -216,7 +185,7 @@ def test_a_certificate_from_another_ca_cannot_open_a_session(acl_router, tmp_pat
     conf.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(rogue_dir / "zagv-hmi.key")))
     with pytest.raises(zenoh.ZError):
         zenoh.open(conf).close()
-    assert router.proc.poll() is None, f"router died:\n{router.output()}"
+    assert router.running(), f"router died:\n{router.output()}"
 
 
 #: (key after agv/r1/, message) the HMI host may send: each arrives

@@ -64,3 +64,31 @@ def test_compiled_and_no_scipy_in_nav_and_localization() -> None:
             "print(sorted(m for m in sys.modules if m.split('.')[0] == 'scipy'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_quadratic_sample_compiled_gives_numpy_bits(seed: int) -> None:
+    """The compiled sampling gives exactly the NumPy arithmetic's values and gradients, inside the field, on its
+    border cells (zero) and beyond it, on half-cell ties (rint rounds half to even) and at NaN points (zero)."""
+    rng = np.random.default_rng(seed)
+    field = rng.random((37, 53)).astype(np.float32)
+    origin, res = np.array([-1.3, 2.1]), 0.05
+    points = np.column_stack([rng.uniform(-1.6, 1.6, 4000), rng.uniform(1.8, 4.2, 4000)])
+    ties = origin + (np.array([[7.0, 9.0], [8.0, 3.0], [1.0, 1.0], [51.0, 35.0]]) + 0.5 + 0.5) * res
+    points = np.vstack([points, ties, [[np.nan, 2.5], [0.0, np.inf]]])
+    value, grad = gridops.quadratic_sample(field, origin, res, points)
+    ref_value, ref_grad = gridops._quadratic_sample_numpy(field, origin, res, points)
+    assert gridops._gridops is not None, "the C extension was not built (make install)"
+    assert np.array_equal(value, ref_value) and np.array_equal(grad, ref_grad)
+    inside = (value != 0.0).sum()
+    assert 0 < inside < len(points)  # both branches were exercised
+    assert np.all(value[-2:] == 0.0) and np.all(grad[-2:] == 0.0)
+
+
+def test_quadratic_sample_refuses_wrong_types() -> None:
+    if gridops._gridops is None:
+        pytest.skip("needs the C extension (make install with a C compiler)")
+    with pytest.raises(ValueError, match="float32 field"):
+        gridops._gridops.quadratic_sample(np.zeros((4, 4)), 0.0, 0.0, 0.1, np.zeros((1, 2)))
+    with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
+        gridops._gridops.quadratic_sample(np.zeros((4, 4), np.float32), 0.0, 0.0, 0.1, np.zeros((2, 3)))

@@ -61,7 +61,8 @@ def browser():
         if os.environ.get("CI") == "true":
             pytest.fail(message + "; CI=true requires the browser tests to run")
         pytest.skip(message)
-    sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is in the dev extra")
+    from playwright import sync_api  # the dev extra
+
     with sync_api.sync_playwright() as pw:
         b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
         yield b

@@ -16,11 +16,10 @@ import collections
 import json
 
 import pytest
+import schemathesis  # the dev extra
+from hypothesis import HealthCheck, given, settings
 
-schemathesis = pytest.importorskip("schemathesis", reason="schemathesis is in the dev extra")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-
-from tests.support.hmi import (  # noqa: E402
+from tests.support.hmi import (
     HmiClient,
     base_url,
     full_stack_available,

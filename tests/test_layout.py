@@ -215,3 +215,41 @@ def test_every_core_module_is_type_checked_strictly():
     assert "services.localization.amcl" in cores and "services.nav.node" not in cores
     missing = [m for m in cores if m not in strict]
     assert not missing, f"pure core modules missing from the strict mypy override in pyproject.toml: {missing}"
+
+
+#: test helpers with one home each: (what, pattern of a definition, the one file allowed to define it)
+TEST_HELPERS = [
+    ("router process class", re.compile(r"^class \w*Router\w*\b", re.M), "tests/support/router.py"),
+    ("free loopback port", re.compile(r"\.bind\(\(\s*\"127\.0\.0\.1\",\s*0\s*\)\)"), "services/common/ports.py"),
+    ("router fixture", re.compile(r"^def router\(", re.M), "tests/conftest.py"),
+]
+
+
+def helper_definitions(files: list[Path]) -> list[str]:
+    """Definitions of the ``TEST_HELPERS`` outside their home file."""
+    found = []
+    for path in files:
+        rel = path.relative_to(REPO).as_posix()
+        text = path.read_text(encoding="utf-8")
+        for what, pattern, home in TEST_HELPERS:
+            if rel != home and pattern.search(text):
+                found.append(f"{rel}: {what} (its home is {home})")
+    return found
+
+
+def test_one_router_class_one_router_fixture_one_free_port():
+    files = [p for folder in ("services", "tests", "tools") for p in sorted((REPO / folder).rglob("*.py"))
+             if "node_modules" not in p.parts and p.name != "test_layout.py"]
+    copies = helper_definitions(files)
+    assert not copies, "use the one definition instead of a copy:\n" + "\n".join(copies)
+
+
+def test_the_helper_rule_sees_a_copy(tmp_path):
+    copy = REPO / "tests" / "_copy_probe.py"
+    samples = ['class Router:\n    pass\n', 's.bind(("127.0.0.1", 0))\n', 'def router(free_port):\n    pass\n']
+    for sample in samples:
+        copy.write_text(sample)
+        try:
+            assert helper_definitions([copy]), sample
+        finally:
+            copy.unlink()

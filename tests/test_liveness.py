@@ -20,7 +20,6 @@ from pathlib import Path
 import pytest
 
 from proto.keys import Keys
-from services.common.ports import free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.launch.stack_process import REPO_ROOT, Stack
@@ -43,19 +42,6 @@ HANGING_SERVICE = textwrap.dedent("""
     service_main("hangs", {}, run, sys.argv[1:])
 """)
 
-
-
-@pytest.fixture
-def router() -> str:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", endpoint], cwd=REPO_ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    try:
-        assert proc.stdout is not None and b"listening" in proc.stdout.readline()
-        yield endpoint
-    finally:
-        proc.terminate()
-        proc.wait(10)
 
 
 @pytest.mark.integration

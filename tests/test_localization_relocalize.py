@@ -13,7 +13,7 @@ import numpy as np
 
 from services.common.map_io import FREE, OCCUPIED, OccupancyMap
 from services.localization.amcl import Amcl, AmclParams, select_beams
-from services.localization.realmap import GridLaser
+from services.localization.realmap import GridLaser, RunTrace, dense, run
 from services.localization.synthetic import MOUNT
 
 RES_M = 0.05
@@ -143,3 +143,46 @@ def test_a_kidnapped_robot_is_lost_at_once_and_never_tracks_a_wrong_pose():
     noticed = states.index("lost")
     wrong = [(i, r, e) for i, (s, r, e) in enumerate(trace) if i > noticed and s == "tracking" and e > 0.2]
     assert not wrong, wrong[:3]
+
+
+#: along the asymmetric room, a turn in place and across it, driving at 0.2 m/s and turning at 0.5 rad/s with scans
+#: at 25 Hz (8 mm, 0.02 rad apart)
+LAP = [(0.8, 0.6, 0.0), (5.5, 0.6, 0.0), (5.5, 0.6, 1.57), (5.5, 3.0, 1.57)]
+SCAN_PERIOD_S = 0.04
+
+
+def lap(scan_lag: int, kidnap_to: tuple[float, float, float] | None = None, seed: int = 8) -> tuple[Amcl, RunTrace]:
+    """The lap with every scan stamped ``scan_lag`` periods late (the odometry it is placed with is that of a pose
+    the robot reached later); ``kidnap_to``: halfway along the first leg the robot is carried there and drives on
+    from it."""
+    grid = room(False)
+    laser = GridLaser(grid, beams=181, rng=np.random.default_rng(seed))
+    truth = dense(LAP, 0.2 * SCAN_PERIOD_S, 0.5 * SCAN_PERIOD_S)
+    kidnap_at = None
+    if kidnap_to is not None:
+        kidnap_at = 290
+        dx, dy = kidnap_to[0] - truth[kidnap_at][0], kidnap_to[1] - truth[kidnap_at][1]
+        truth = truth[:kidnap_at] + [(x + dx, y + dy, th) for x, y, th in truth[kidnap_at:kidnap_at + 150]]
+    amcl = Amcl(grid, AmclParams(random_seed=seed))
+    amcl.set_initial_pose(truth[0], np.diag([0.03 ** 2, 0.03 ** 2, 0.02 ** 2]))
+    return amcl, run(amcl, laser, truth, seed=seed, scan_period_s=SCAN_PERIOD_S, kidnap_at=kidnap_at,
+                     scan_lag=scan_lag)
+
+
+def test_scans_half_a_second_late_do_not_make_a_good_track_lost():
+    """Placed at a pose odometry has already moved past (0.1 m on the legs, 0.24 rad where a turn starts), the scans
+    match the map poorly (score below lost_score) while the track is right: hill-climbed from the poses odometry
+    held over the last moments, the scan fits as well as the track did, so the verdict stays tracking."""
+    amcl, trace = lap(scan_lag=12)
+    assert amcl.low_scores_discounted > 0, "the lag must bring the score below lost_score for the test to mean much"
+    assert "lost" not in trace.states, [i for i, s in enumerate(trace.states) if s == "lost"][:5]
+    assert max(trace.errors_xy_m) < 0.3
+
+
+def test_a_kidnapping_with_scans_half_a_second_late_is_still_noticed_within_half_a_second():
+    amcl, trace = lap(scan_lag=12, kidnap_to=(3.0, 4.2, 0.0))
+    t = np.array(trace.times_s)
+    fault_s = 290 * SCAN_PERIOD_S
+    lost = [ti for ti, s in zip(t, trace.states, strict=True) if ti >= fault_s and s == "lost"]
+    assert lost and lost[0] - fault_s <= 0.5, lost[:1]
+    assert "scan match" in amcl.lost_reason and "fit" in amcl.lost_reason, amcl.lost_reason

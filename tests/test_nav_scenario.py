@@ -165,7 +165,6 @@ def test_summary_table_means_over_reached_goals() -> None:
 
 
 def test_plots_are_written(tmp_path: Path) -> None:
-    pytest.importorskip("matplotlib")
     t = np.linspace(0, 10, 50)
     trace = [(ti, 0.2 * ti, 0.1, 0.0, 0.2, 0.0, 0.01) for ti in t]
     leg = Leg(1, Goal("1", (2.0, 0.1, 0.0)), 0.0, plan=np.array([[0, 0, 0], [2, 0.1, 0]], dtype=float), trace=trace)

@@ -1,11 +1,13 @@
-"""Euclidean distance transform and connected-component labelling of grids, without importing scipy.
+"""Euclidean distance transform and connected-component labelling of grids, without importing scipy, and the
+quadratic sampling of a smooth field that scan matching evaluates thousands of times per scan.
 
 ``distance_transform_edt`` and ``label`` compute what ``scipy.ndimage``'s functions of the same names compute for
 the cases the services use (2-D distance with one isotropic cell size; 2-D or 3-D labels with every neighbour of the
 3^n - 1 neighbourhood connected), through the small C extension ``services/common/_gridops.c`` built at install.
 Importing ``scipy.ndimage`` loads ``scipy.special`` and ``numpy.testing``, about 30 MB resident in each process that
 does it; nav and localization need only these two operations. Where no C compiler was available at install, both
-fall back to ``scipy.ndimage`` (imported then, on first use).
+fall back to ``scipy.ndimage`` (imported then, on first use). ``quadratic_sample`` falls back to the same arithmetic in
+NumPy, which is about 30x slower on a scan's few hundred points (its cost is NumPy's per-call overhead).
 """
 
 from __future__ import annotations
@@ -51,3 +53,52 @@ def label(grid: np.ndarray) -> tuple[np.ndarray, int]:
         return np.asarray(labels, dtype=np.int32), int(count)
     raw, count = _gridops.label(np.ascontiguousarray(grid != 0, dtype=np.uint8))
     return np.frombuffer(raw, dtype=np.int32).reshape(grid.shape), int(count)
+
+
+def quadratic_sample(field: np.ndarray, origin_xy_m: np.ndarray, resolution_m: float, points_xy_m: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """M(p) and ∇M(p) (per metre) of a float32 field (``field[iy, ix]``, cell centres at origin + (i + 0.5) * res)
+    at points (N, 2); 0 where the 3x3 neighbourhood of the nearest centre leaves the field.
+
+    Second-order Taylor expansion about the nearest cell centre c: M(c + δ) ≈ M_c + gᵀδ + ½ δᵀHδ with g, H from
+    central differences of the 3x3 neighbourhood (δ in cells). The C path and the NumPy path give the same bits.
+    """
+    field = np.ascontiguousarray(field, dtype=np.float32)
+    points = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    if _gridops is not None:
+        n = len(points)
+        out = np.frombuffer(_gridops.quadratic_sample(field, float(origin_xy_m[0]), float(origin_xy_m[1]),
+                                                      float(resolution_m), points), dtype=np.float64)
+        return out[:n], out[n:].reshape(n, 2)
+    return _quadratic_sample_numpy(field, origin_xy_m, resolution_m, points)
+
+
+def _quadratic_sample_numpy(field: np.ndarray, origin_xy_m: np.ndarray, resolution_m: float, points: np.ndarray
+                            ) -> tuple[np.ndarray, np.ndarray]:
+    """``quadratic_sample`` in NumPy (the fallback without the C extension, and its reference in tests)."""
+    height, width = field.shape
+    u = (points[:, 0] - origin_xy_m[0]) / resolution_m - 0.5
+    v = (points[:, 1] - origin_xy_m[1]) / resolution_m - 0.5
+    x = np.rint(u).astype(np.intp)
+    y = np.rint(v).astype(np.intp)
+    ok = (x >= 1) & (y >= 1) & (x < width - 1) & (y < height - 1)
+    x[~ok] = 1
+    y[~ok] = 1
+    du = u - x
+    dv = v - y
+    flat = field.ravel()
+    i = y * width + x
+    c = flat.take(i)
+    e, w = flat.take(i + 1), flat.take(i - 1)
+    n, s = flat.take(i + width), flat.take(i - width)
+    gx = 0.5 * (e - w)
+    gy = 0.5 * (n - s)
+    hxx = e - 2.0 * c + w
+    hyy = n - 2.0 * c + s
+    hxy = 0.25 * (flat.take(i + width + 1) - flat.take(i - width + 1) - flat.take(i + width - 1)
+                  + flat.take(i - width - 1))
+    value = c + gx * du + gy * dv + 0.5 * (hxx * du * du + 2.0 * hxy * du * dv + hyy * dv * dv)
+    grad = np.stack([gx + hxx * du + hxy * dv, gy + hxy * du + hyy * dv], axis=1) / resolution_m
+    value = np.where(ok, value, 0.0)
+    grad[~ok] = 0.0
+    return value, grad

@@ -117,7 +117,8 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                 # the black box holds what it saw since it was ready (before `zagv: ready`): a full minute of it
                 # lies before the e-stop only once the sim clock is a minute past that, whatever the machine's load
                 estop_s = asyncio.run(_estop_at(stack, max(estop_at_s, ready_sim_s + BLACKBOX_MINUTE_S + 2.0)))
-                stack.wait_line(r"black box saved", timeout_s=120.0)
+                # this e-stop's bag: a loaded machine may have saved an earlier one (a drive fault) before it
+                stack.wait_line(r"black box saved: \S*_estop\b", timeout_s=120.0)
             time.sleep(1.0)  # the last messages reach the recorder
         finally:
             rec.send_signal(2)

@@ -102,7 +102,8 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     #: the verdict (``Amcl.state``): a beam is *explained* when its endpoint, seen from the estimate, lies within
     #: ``match_distance_m`` of an obstacle of the map; ``match_score`` is the median over the last
     #: ``match_window`` scans of the fraction of beams explained. Tracking turns lost when that median falls below
-    #: ``lost_score`` or the particles spread beyond ``lost_spread_m``; localizing (after an initial pose, a global
+    #: ``lost_score`` (and the track no longer fits, ``lost_evidence_*``) or the particles spread beyond
+    #: ``lost_spread_m``; localizing (after an initial pose, a global
     #: localization or a recovery) turns tracking when the median reaches ``track_score`` with the spread under
     #: ``track_spread_m``
     match_distance_m: float = 0.15
@@ -148,6 +149,19 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     fit_window: int = 20
     confirm_exclude_m: float = 1.0
     confirm_exclude_rad: float = 0.5
+    #: a low scan match alone does not make a tracking filter lost: a scan placed at a pose odometry has already
+    #: moved past (stamped or delivered late under load) scores low while the track is right. The score says lost
+    #: only when the evidence is sustained and the track itself no longer fits: on every scan while the robot travels
+    #: ``lost_evidence_m`` or turns ``lost_evidence_rad`` (standing still: for ``lost_evidence_s``), whichever comes
+    #: first, the median score stays below ``lost_score`` and the held pose, hill-climbed on that scan (a local
+    #: re-fit), explains it worse by more than ``fit_drop`` nats per beam than the track's median over the last
+    #: ``fit_window`` tracking updates. The re-fit also starts from the poses odometry held over the last
+    #: ``lost_refit_history_s`` (map_odom ∘ each; a scan that arrived late was taken at one of them, and when a turn
+    #: starts the held pose is off by the turn rate times the lag, beyond one climb's reach)
+    lost_evidence_m: float = 0.05
+    lost_evidence_rad: float = 0.1
+    lost_evidence_s: float = 0.2
+    lost_refit_history_s: float = 1.5
     #: half of the search's candidates lie within this distance (m) of the pose: a repetitive building (a row of
     #: bays, offices, shelves) repeats itself next door first, and a large map leaves the neighbourhood sparse
     confirm_near_m: float = 15.0
@@ -183,6 +197,8 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "fit_drop": self.fit_drop >= 0, "fit_window": self.fit_window >= 1,
             "confirm_rivals": self.confirm_rivals >= 0, "confirm_exclude_m": self.confirm_exclude_m > 0,
             "confirm_exclude_rad": self.confirm_exclude_rad > 0, "confirm_near_m": self.confirm_near_m >= 0,
+            "lost_evidence_m": self.lost_evidence_m >= 0, "lost_evidence_rad": self.lost_evidence_rad >= 0,
+            "lost_evidence_s": self.lost_evidence_s >= 0, "lost_refit_history_s": self.lost_refit_history_s >= 0,
         }
         for i in range(1, 6):
             checks[f"alpha{i}"] = getattr(self, f"alpha{i}") >= 0
@@ -533,6 +549,17 @@ class ParticleFilter:
 
     # ------------------------------------------------------------------ sensor
 
+    def use_scan(self, ranges: np.ndarray, bearings: np.ndarray, mount: tuple[float, float, float],
+                 range_max: float) -> None:
+        """Make this scan (valid beams: range m, bearing rad in the laser frame) the one ``scan_log_likelihood``,
+        ``climb`` and the recovery's sensor resetting score poses on."""
+        self._ensure_beam_buffers(int(ranges.size))
+        self.field.prepare(range_max)
+        res = self.grid.resolution
+        rc = (ranges * np.cos(bearings) / res).astype(np.float32)
+        rs = (ranges * np.sin(bearings) / res).astype(np.float32)
+        self._last_beams = (rc, rs, mount)
+
     def sensor_update(self, ranges: np.ndarray, bearings: np.ndarray, mount: tuple[float, float, float],
                       range_max: float) -> float:
         """Weight particles by the likelihood field for beams (range m, bearing rad in the laser frame).
@@ -545,12 +572,7 @@ class ParticleFilter:
         b = int(ranges.size)
         if b == 0:
             return 0.0
-        self._ensure_beam_buffers(b)
-        self.field.prepare(range_max)
-        res = self.grid.resolution
-        rc = (ranges * np.cos(bearings) / res).astype(np.float32)
-        rs = (ranges * np.sin(bearings) / res).astype(np.float32)
-        self._last_beams = (rc, rs, mount)
+        self.use_scan(ranges, bearings, mount, range_max)
         like = self._percol[5, :n]
         self._likelihood_sums(self.poses, n, like)
         if p.laser_model_type == "likelihood_field_prob":
@@ -881,6 +903,24 @@ def cluster_labels(poses: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class LowScoreEvidence:
+    """Scans in a row whose match score is low and on which the held pose no longer fits (``Amcl``'s verdict): when
+    the stretch began (s) and how far the robot has travelled (m, path) and turned (rad) since, by odometry."""
+
+    started_s: float
+    odom_pose: tuple[float, float, float]
+    travelled_m: float = 0.0
+    turned_rad: float = 0.0
+
+    def advance(self, odom_pose: tuple[float, float, float]) -> None:
+        """Add the odometry motion from the last scan of the stretch to this one."""
+        last = self.odom_pose
+        self.travelled_m += math.hypot(odom_pose[0] - last[0], odom_pose[1] - last[1])
+        self.turned_rad += abs(float(wrap_angle(odom_pose[2] - last[2])))
+        self.odom_pose = odom_pose
+
+
+@dataclass
 class ScanBeams:
     """A scan reduced to the beams AMCL uses: ranges (m) and bearings (rad) in the laser frame, and range_max."""
 
@@ -964,6 +1004,14 @@ class Amcl:
         #: the best other poses of the last confirmation check (map frame) and the odometry pose they were at
         self._rivals = np.zeros((0, 3))
         self._rivals_odom: tuple[float, float, float] | None = None
+        #: the current stretch of low-scoring scans the track no longer fits (None: the last scan fitted)
+        self._evidence: LowScoreEvidence | None = None
+        self._evidence_text = ""
+        #: scans whose score was below lost_score while tracking but on which the track still fitted
+        self.low_scores_discounted = 0
+        #: (stamp s, odometry pose) of the scans over the last lost_refit_history_s, oldest first
+        self._odom_recent: collections.deque[tuple[float, float, float]] = collections.deque()
+        self._odom_recent_s: collections.deque[float] = collections.deque()
         self.stale_scans_ignored = 0
         #: scans stamped before this (s) predate the last initial pose or global request: ignored
         self._scans_from_s = -math.inf
@@ -1021,8 +1069,14 @@ class Amcl:
     def reanchor_odometry(self) -> None:
         """Odometry restarted: the next scan updates the filter without motion and re-derives map_odom."""
         self.pf_odom_pose = None
+        self._forget_odometry()
+
+    def _forget_odometry(self) -> None:
+        self._odom_recent.clear()
+        self._odom_recent_s.clear()
 
     def _reinitialised(self, stamp_s: float | None = None) -> None:
+        self._forget_odometry()
         self._scans_from_s = -math.inf if stamp_s is None else float(stamp_s)
         self.pf_odom_pose = None
         self.resample_count = 0
@@ -1034,6 +1088,7 @@ class Amcl:
         self._updates_since_reset = 0
         self._confirmations = 0
         self._rivals = np.zeros((0, 3))
+        self._evidence = None
 
     def _set_state(self, state: str, reason: str) -> None:
         self.state, self.reason = state, reason
@@ -1088,9 +1143,20 @@ class Amcl:
             self._updates_since_reset += 1
             if self.state == "tracking":
                 self._fits.append(self._fit(self.estimate.pose)[1])
+        self._remember_odometry(odom_pose)
         if self.map_odom is not None:
-            self._judge(compose(self.map_odom, odom_pose), beams, mount)
+            self._judge(compose(self.map_odom, odom_pose), odom_pose, beams, mount)
         return update
+
+    def _remember_odometry(self, odom_pose: tuple[float, float, float]) -> None:
+        """Keep the odometry poses of the scans over the last ``lost_refit_history_s`` (the re-fit's seeds)."""
+        if self._odom_recent_s and self._now < self._odom_recent_s[-1]:  # the clock went back: another run
+            self._forget_odometry()
+        self._odom_recent.append(odom_pose)
+        self._odom_recent_s.append(self._now)
+        while self._odom_recent_s and self._odom_recent_s[0] < self._now - self.params.lost_refit_history_s:
+            self._odom_recent.popleft()
+            self._odom_recent_s.popleft()
 
     def _predict_uncertainty(self, odom_theta: float, delta: tuple[float, float, float]) -> None:
         """Grow the tracked covariance by the odometry step ``delta`` (odom frame, from heading ``odom_theta``)."""
@@ -1137,8 +1203,10 @@ class Amcl:
         self.pf.poses[:n, 2] = wrap_angle(self.pf.poses[:n, 2] + dth)
         self.estimate = Estimate(r.pose, est.covariance, est.weight, est.particles, est.spread_m)
 
-    def _judge(self, pose: tuple[float, float, float], beams: ScanBeams, mount: tuple[float, float, float]) -> None:
-        """Score the scan at the map pose, then move the verdict and the recovery on."""
+    def _judge(self, pose: tuple[float, float, float], odom_pose: tuple[float, float, float], beams: ScanBeams,
+               mount: tuple[float, float, float]) -> None:
+        """Score the scan at the map pose (the held one: map_odom ∘ ``odom_pose``), then move the verdict and the
+        recovery on."""
         p = self.params
         score = self.pf.explained_fraction(pose, beams.ranges, beams.bearings, mount)
         if math.isfinite(score):  # else the scan saw too little the map knows: the verdict waits
@@ -1156,11 +1224,13 @@ class Amcl:
                 # other poses fitting the scan (a self-similar building), which is no evidence against the track
                 self.pf.keep_near(self.estimate.pose, p.lost_spread_m)
                 spread = False
-            if self.match_score < p.lost_score or spread or self.jump_m > p.lost_spread_m:
+            low = self._low_score_sustained(pose, odom_pose, beams, mount)
+            if low or spread or self.jump_m > p.lost_spread_m:
                 self.lost_at = now
                 self.lost_reason = (f"scan match {self.match_score:.2f}, spread {self.spread_m:.2f} m"
                                     + (f", estimate jumped {self.jump_m:.2f} m" if self.jump_m > p.lost_spread_m
-                                       else ""))
+                                       else "") + (f", {self._evidence_text}" if low else ""))
+                self._evidence = None
                 # first the Augmented-MCL injection (allowed now, with w_slow still at the tracking level) for
                 # recovery_attempt_s: it finds a nearby kidnap within centimetres of travel; the sensor resets
                 # around last_good, then global, follow only when it has not converged by then
@@ -1197,6 +1267,51 @@ class Amcl:
             self._start_stage(0)
         else:
             self._start_stage(min(self._stage + 1, p.local_recovery_attempts))
+
+    def _low_score_sustained(self, pose: tuple[float, float, float], odom_pose: tuple[float, float, float],
+                             beams: ScanBeams, mount: tuple[float, float, float]) -> bool:
+        """Whether a low scan match has become evidence against the track (``AmclParams.lost_evidence_*``): the
+        median score below ``lost_score`` and the held ``pose``, hill-climbed on this scan, at least ``fit_drop`` nats
+        per beam below the track's median fit, on every scan over ``lost_evidence_m`` travelled, ``lost_evidence_rad``
+        turned or ``lost_evidence_s``. Without a track fit to compare with (fewer than 2 tracking updates) the fit
+        test counts as failed."""
+        p = self.params
+        if self.match_score >= p.lost_score or beams.ranges.size == 0:
+            self._evidence = None
+            return False
+        reference = float(np.median(self._fits)) if len(self._fits) >= 2 else None
+        self.pf.use_scan(beams.ranges, beams.bearings, mount, beams.range_max)
+        fit = self._refit(pose)
+        if reference is not None and fit >= reference - p.fit_drop:
+            # the scan fits the track a few centimetres away: a late scan (or odometry ahead of it), not a loss
+            self._evidence = None
+            self.low_scores_discounted += 1
+            return False
+        ev = self._evidence
+        if ev is None:
+            ev = self._evidence = LowScoreEvidence(self._now, odom_pose)
+        ev.advance(odom_pose)
+        ref = "none yet" if reference is None else f"{reference:.2f}"
+        self._evidence_text = (f"fit {fit:.2f} vs track {ref} nats per beam over {ev.travelled_m:.2f} m, "
+                               f"{ev.turned_rad:.2f} rad, {self._now - ev.started_s:.2f} s")
+        return (ev.travelled_m >= p.lost_evidence_m or ev.turned_rad >= p.lost_evidence_rad
+                or self._now - ev.started_s >= p.lost_evidence_s)
+
+    def _refit(self, pose: tuple[float, float, float]) -> float:
+        """Log-likelihood per beam (nats) of the best local re-fit of the current scan: ``pose`` and the poses
+        odometry held over the last ``lost_refit_history_s`` (map_odom ∘ each, one per 0.05 m or 0.05 rad of
+        motion), all hill-climbed."""
+        seeds = [pose]
+        if self.map_odom is not None:
+            last = pose
+            for odom_pose in reversed(self._odom_recent):
+                held = compose(self.map_odom, odom_pose)
+                if (math.hypot(held[0] - last[0], held[1] - last[1]) >= 0.05
+                        or abs(float(wrap_angle(held[2] - last[2]))) >= 0.05):
+                    seeds.append(held)
+                    last = held
+        _, ll = self.pf.climb(np.array(seeds))
+        return float(ll.max()) / max(self.pf.last_beam_count, 1)
 
     def _track_fits(self) -> bool:
         """Whether the latest update's pose explains its scan about as well as the track has lately (per-beam

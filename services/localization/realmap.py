@@ -120,19 +120,26 @@ class RunTrace:
 
 
 def run(amcl: Amcl, laser: GridLaser, truth: list[Pose], *, seed: int = 1, scan_period_s: float = 0.2,
-        kidnap_at: int | None = None) -> RunTrace:
+        kidnap_at: int | None = None, scan_lag: int = 0) -> RunTrace:
     """Feed AMCL one scan per true pose (``scan_period_s`` apart, for the time axis). ``kidnap_at``: the robot is
-    carried from truth[kidnap_at - 1] to truth[kidnap_at] without its wheels turning (odometry does not see it)."""
+    carried from truth[kidnap_at - 1] to truth[kidnap_at] without its wheels turning (odometry does not see it).
+    ``scan_lag``: every scan is stamped that many periods late, so it goes to the filter with the odometry of a pose
+    the robot reached later (truth[i + scan_lag], the last one at the end); errors are those of the pose the filter
+    holds for the scan's stamp."""
     odom = Odometry(truth[0], rng=np.random.default_rng(seed + 20))
+    odoms = []
+    for i, true in enumerate(truth):
+        if kidnap_at is not None and i == kidnap_at:
+            odom.teleported(true)
+        odoms.append(odom.step(true))
     trace = RunTrace()
     travelled, last = 0.0, truth[0]
     for i, true in enumerate(truth):
         if kidnap_at is not None and i == kidnap_at:
-            odom.teleported(true)
             last = true
         travelled += math.hypot(true[0] - last[0], true[1] - last[1])
         last = true
-        o = odom.step(true)
+        o = odoms[min(i + scan_lag, len(odoms) - 1)]
         beams = select_beams(laser.scan(true), laser.angle_min, laser.angle_increment, laser.range_min,
                              laser.range_max, amcl.params)
         amcl.process(o, beams, MOUNT, i * scan_period_s)

@@ -142,6 +142,86 @@ class LogClock:
         return sim_ns if sim_ns is not None else int(round((self.first_sim_s or 0.0) * 1e9))
 
 
+class _Recording:
+    """One ``zagv record`` run: samples arrive on Zenoh's side (``on_sample``), the main thread writes them
+    (``write``) in arrival order, and ``finish`` writes what is still held and closes the bag."""
+
+    def __init__(self, recorder: BagRecorder, keys: Keys, names: list[str] | None) -> None:
+        self.recorder = recorder
+        self.names = names
+        self.samples = Backlog()
+        self.pending: list[Arrival] = []
+        self.clock = LogClock()
+        self.clock_key = keys("clock")
+        self.wanted = None if names is None else {*names, "clock"}
+        self.bad: dict[str, int] = {}
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        """Stamped on arrival, in arrival order: a writer that falls behind still logs each message at the clock time
+        it arrived at."""
+        key = str(sample.key_expr)
+        if self.wanted is not None and split_key(key)[1] not in self.wanted:
+            return
+        payload = sample.payload.to_bytes()
+        if key == self.clock_key:
+            with contextlib.suppress(codec.ProtoDecodeError):
+                self.clock.on_clock(codec.decode_as(Clock, payload, key))
+        if not self.samples.put((key, payload, *self.clock.arrival())) and sum(self.samples.dropped.values()) == 1:
+            print(f"\nzagv record: the writer is {self.samples.max_bytes / 1e6:.0f} MB behind: dropping messages "
+                  f"(counted)", file=sys.stderr)
+
+    def write(self, key: str, payload: bytes, sim_ns: int | None, wall_ns: int) -> None:
+        """Decode and write one sample at its log time (held while the time base is undecided)."""
+        log_ns = self.clock.log_ns(sim_ns, wall_ns)
+        if log_ns is None:
+            self.pending.append((key, payload, sim_ns, wall_ns))
+            return
+        while self.pending:
+            self.write(*self.pending.pop(0))
+        name = split_key(key)[1]
+        if name not in TOPICS or (self.names is not None and name not in self.names):
+            return
+        try:
+            msg = codec.decode(name, payload)
+        except codec.ProtoDecodeError as exc:
+            self.bad[name] = self.bad.get(name, 0) + 1
+            if self.bad[name] == 1:
+                print(f"zagv record: skipping bad payloads on {name}: {exc}", file=sys.stderr)
+            return
+        self.recorder.write(name, msg, log_ns)
+
+    def write_until(self, duration_s: float, quiet: bool) -> None:
+        """Write as samples come, with a progress line a second, until ``duration_s`` of log time (0: Ctrl-C)."""
+        next_line = time.monotonic() + 1.0
+        while True:
+            with contextlib.suppress(queue.Empty):
+                self.write(*self.samples.get(timeout_s=0.2))
+            if not quiet and time.monotonic() >= next_line:
+                next_line += 1.0
+                drops = self.samples.drop_line()
+                print(f"\rzagv record: {self.recorder.stats.line()}{'  ' + drops if drops else ''}", end="",
+                      flush=True)
+            if duration_s and self.recorder.stats.duration_s >= duration_s:
+                return
+
+    def finish(self) -> None:
+        """Write what arrived before the stop, close the bag and report."""
+        self.clock.decide_now()  # for what is still undecided
+        while True:
+            try:
+                self.write(*self.samples.get())
+            except queue.Empty:
+                break
+        while self.pending:
+            self.write(*self.pending.pop(0))
+        bags = self.recorder.close()
+        print(f"\rzagv record: {self.recorder.stats.line()}")
+        if drops := self.samples.drop_line():
+            print(f"zagv record: {drops}", file=sys.stderr)
+        for bag in bags:
+            print(f"zagv record: wrote {bag}")
+
+
 def record(settings: ZenohSettings, keys: Keys, output: str | None, names: list[str] | None, *,
            split_size_mb: float = 0.0, split_duration_s: float = 0.0, duration_s: float = 0.0,
            quiet: bool = False) -> int:
@@ -158,87 +238,24 @@ def record(settings: ZenohSettings, keys: Keys, output: str | None, names: list[
     except FileExistsError as exc:
         print(f"zagv record: {exc}", file=sys.stderr)
         return 2
-    samples = Backlog()
-    pending: list[Arrival] = []
-    clock = LogClock()
-    clock_key = keys("clock")
-    wanted = None if names is None else {*names, "clock"}
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        # stamped on arrival, in arrival order: a writer that falls behind still logs each message at the clock
-        # time it arrived at
-        key = str(sample.key_expr)
-        if wanted is not None and split_key(key)[1] not in wanted:
-            return
-        payload = sample.payload.to_bytes()
-        if key == clock_key:
-            with contextlib.suppress(codec.ProtoDecodeError):
-                clock.on_clock(codec.decode_as(Clock, payload, key))
-        if not samples.put((key, payload, *clock.arrival())) and sum(samples.dropped.values()) == 1:
-            print(f"\nzagv record: the writer is {samples.max_bytes / 1e6:.0f} MB behind: dropping messages "
-                  f"(counted)", file=sys.stderr)
-
+    run = _Recording(recorder, keys, names)
     session = open_session(settings)
-    bad: dict[str, int] = {}
-
-    def write(key: str, payload: bytes, sim_ns: int | None, wall_ns: int) -> None:
-        log_ns = clock.log_ns(sim_ns, wall_ns)
-        if log_ns is None:
-            pending.append((key, payload, sim_ns, wall_ns))
-            return
-        while pending:
-            write(*pending.pop(0))
-        name = split_key(key)[1]
-        if name not in TOPICS or (names is not None and name not in names):
-            return
-        try:
-            msg = codec.decode(name, payload)
-        except codec.ProtoDecodeError as exc:
-            bad[name] = bad.get(name, 0) + 1
-            if bad[name] == 1:
-                print(f"zagv record: skipping bad payloads on {name}: {exc}", file=sys.stderr)
-            return
-        recorder.write(name, msg, log_ns)
-
     # one subscriber (also for chosen topics, filtered on arrival), so that one channel keeps the order in which
     # `clock` and the other topics arrived
     sub = session.declare_subscriber(keys.everything, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY))
-    receiver = threading.Thread(target=_drain, args=(sub.handler, on_sample), name="zagv-record-receive",
+    receiver = threading.Thread(target=_drain, args=(sub.handler, run.on_sample), name="zagv-record-receive",
                                 daemon=True)
     receiver.start()
     try:
-        clock.subscribed()
+        run.clock.subscribed()
         if names is None or "map" in names:
-            session.get(keys("map"), lambda r: on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
-        next_line = time.monotonic() + 1.0
-        while True:
-            with contextlib.suppress(queue.Empty):
-                write(*samples.get(timeout_s=0.2))
-            if not quiet and time.monotonic() >= next_line:
-                next_line += 1.0
-                drops = samples.drop_line()
-                print(f"\rzagv record: {recorder.stats.line()}{'  ' + drops if drops else ''}", end="", flush=True)
-            if duration_s and recorder.stats.duration_s >= duration_s:
-                break
+            session.get(keys("map"), lambda r: run.on_sample(r.ok) if r.ok is not None else None, timeout=2.0)
+        run.write_until(duration_s, quiet)
     except KeyboardInterrupt:
         pass
     finally:
         sub.undeclare()
         receiver.join(timeout=10.0)  # what Zenoh still held reaches the backlog
         session.close()
-        clock.decide_now()  # for what is still undecided
-        while True:  # what arrived before the stop is written
-            try:
-                write(*samples.get())
-            except queue.Empty:
-                break
-        while pending:
-            write(*pending.pop(0))
-        bags = recorder.close()
-        print(f"\rzagv record: {recorder.stats.line()}")
-        if drops := samples.drop_line():
-            print(f"zagv record: {drops}", file=sys.stderr)
-        for bag in bags:
-            print(f"zagv record: wrote {bag}")
+        run.finish()
     return 0
-

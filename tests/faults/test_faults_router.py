@@ -6,19 +6,15 @@ Every service keeps running, gets its health token back and its data flows again
 from __future__ import annotations
 
 import re
-import signal
-import socket
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 
 import pytest
 
 from services.common.ports import free_port
-from services.launch.stack_process import REPO_ROOT, Stack
+from services.launch.stack_process import Stack
 from tests.faults.test_faults_services import Observer
-from tests.support.waiting import wait_for_sync
+from tests.support.router import RouterProcess
 
 pytestmark = pytest.mark.integration
 
@@ -26,41 +22,9 @@ SERVICES = ["sim", "drive", "lidar", "localization", "nav", "hmi_api"]
 DATA = ["clock", "wheels", "scan", "tf/map_odom"]
 
 
-class Router:
-    """``zagv router`` on one loopback port, which can be stopped and started again."""
-
-    def __init__(self, port: int) -> None:
-        self.port = port
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        self.proc: subprocess.Popen[bytes] | None = None
-
-    def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", self.endpoint],
-                                     cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.DEVNULL)
-        wait_for_sync(self.listening, timeout_s=20, poll_s=0.01, message="zagv router never listened")
-
-    def listening(self) -> bool:
-        try:
-            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5):
-                return True
-        except OSError:
-            return False
-
-    def stop(self) -> None:
-        if self.proc and self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
 @pytest.fixture
-def routed(tmp_path) -> Iterator[tuple[Router, Stack, Observer]]:
-    router = Router(free_port())
-    router.start()
+def routed(tmp_path) -> Iterator[tuple[RouterProcess, Stack, Observer]]:
+    router = RouterProcess.listening_on(free_port()).start()
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     stack = Stack(run_dir, SERVICES, world="corridor", speed=1.0, extra_args=["--external-router", router.endpoint])

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.common.gridops import quadratic_sample
+
 
 @dataclass
 class LikelihoodGrid:
@@ -56,35 +58,9 @@ class LikelihoodGrid:
         Second-order Taylor expansion about the nearest cell centre c (centres at origin + (i + 0.5) * res):
         M(c + δ) ≈ M_c + gᵀδ + ½ δᵀHδ with g, H from central differences of the 3x3 neighbourhood. Unlike
         bilinear interpolation, this keeps a peak between two cell centres peaked, so a wall's position is
-        found to a small fraction of a cell.
+        found to a small fraction of a cell (``services.common.gridops.quadratic_sample``, compiled).
         """
-        f = self.field
-        height, width = f.shape
-        u = (points_xy_m[:, 0] - self.origin_xy_m[0]) / self.resolution_m - 0.5
-        v = (points_xy_m[:, 1] - self.origin_xy_m[1]) / self.resolution_m - 0.5
-        x = np.rint(u).astype(np.intp)
-        y = np.rint(v).astype(np.intp)
-        ok = (x >= 1) & (y >= 1) & (x < width - 1) & (y < height - 1)
-        x[~ok] = 1
-        y[~ok] = 1
-        du = u - x
-        dv = v - y
-        flat = f.ravel()
-        i = y * width + x
-        c = flat.take(i)
-        e, w = flat.take(i + 1), flat.take(i - 1)
-        n, s = flat.take(i + width), flat.take(i - width)
-        gx = 0.5 * (e - w)
-        gy = 0.5 * (n - s)
-        hxx = e - 2.0 * c + w
-        hyy = n - 2.0 * c + s
-        hxy = 0.25 * (flat.take(i + width + 1) - flat.take(i - width + 1) - flat.take(i + width - 1)
-                      + flat.take(i - width - 1))
-        value = c + gx * du + gy * dv + 0.5 * (hxx * du * du + 2.0 * hxy * du * dv + hyy * dv * dv)
-        grad = np.stack([gx + hxx * du + hxy * dv, gy + hxy * du + hyy * dv], axis=1) / self.resolution_m
-        value = np.where(ok, value, 0.0)
-        grad[~ok] = 0.0
-        return value, grad
+        return quadratic_sample(self.field, self.origin_xy_m, self.resolution_m, points_xy_m)
 
     def nearest_values(self, points_xy_m: np.ndarray) -> np.ndarray:
         """M at the cell containing each point (0 outside); cheap, for scoring."""
