@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import threading
+import time
 
 import pytest
+import zenoh
 
 from proto import Keys, encode
-from proto.messages import Empty, OccupancyGrid, Pose2D, Reply, Twist2D
+from proto.messages import Empty, LaserScan, OccupancyGrid, Pose2D, Reply, Twist2D
 from services.common.node import Node
 from services.common.query import NoAnswer, QueryError
 from services.common.session import open_session
@@ -186,3 +189,51 @@ async def test_a_large_latched_message_published_once_after_a_slow_start_arrives
     await wait_for(lambda: got and got[-1].width == 640, timeout_s=10)
     producer.close()
     consumer.close()
+
+
+def _hold_the_loop(seconds: float) -> None:
+    """Keep the calling thread (the event loop's) busy in Python bytecode, as a long synchronous step does."""
+    until = time.monotonic() + seconds
+    while time.monotonic() < until:
+        sum(i * i for i in range(2000))
+
+
+async def test_a_blocked_loop_still_gets_every_message_in_order_and_latest_only_stays_latest(client):
+    """While the loop is held for 2 s, 300 scans are published: ``subscribe`` (and an unbounded ``subscription``)
+    hand over all of them, in order, once the loop turns again (the bridge between Zenoh's thread and the loop
+    drops nothing); a ``subscription`` with the default ``maxlen=1`` (control topics) yields only the newest."""
+    keys = Keys("t_blocked")
+    node = Node("b", client(), keys)
+    every: list[float] = []
+    node.subscribe("scan", lambda m: every.append(m.stamp))
+    unbounded = node.subscription("scan", maxlen=None)
+    latest = node.subscription("scan")
+    pub = client().declare_publisher(keys("scan"), congestion_control=zenoh.CongestionControl.BLOCK)
+    probe = LaserScan(stamp=-1.0)
+    await wait_for(lambda: (pub.put(encode(probe)), bool(every))[1], timeout_s=10)
+    await asyncio.sleep(0.2)  # probes still in flight arrive before the count starts
+    every.clear()
+    n = 300
+    body = b"\0" * (4 * 360)  # an LMS111-sized scan
+
+    def publish() -> None:
+        for i in range(n):
+            pub.put(encode(LaserScan(stamp=float(i), ranges=body)))
+
+    sender = threading.Thread(target=publish)
+    sender.start()
+    _hold_the_loop(2.0)
+    sender.join()
+    await wait_for(lambda: len(every) >= n, timeout_s=20, message=f"all {n} scans after the loop was held")
+    assert every == [float(i) for i in range(n)]
+    assert node.received[keys("scan")] == node.delivered[keys("scan")] >= n
+    got: list[float] = []
+    async for msg in unbounded:
+        if msg.stamp >= 0:
+            got.append(msg.stamp)
+        if len(got) == n:
+            break
+    assert got == every
+    newest = await asyncio.wait_for(anext(latest), 5.0)
+    assert newest.stamp == n - 1  # only the newest of the backlog was kept
+    node.close()

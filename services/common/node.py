@@ -111,6 +111,9 @@ class Node:
         self.loop = asyncio.get_running_loop()
         self.log = logging.getLogger(f"zagv.{name}")
         self.bad_payloads: collections.Counter[str] = collections.Counter()
+        # per key: samples Zenoh handed over (its thread) and messages the loop delivered (the bridge's two ends)
+        self.received: collections.Counter[str] = collections.Counter()
+        self.delivered: collections.Counter[str] = collections.Counter()
         self._bad_logged_at: dict[str, float] = {}
         self._declared: list[Any] = []
         self._started_at = time.monotonic()
@@ -164,6 +167,8 @@ class Node:
             "service": self.name,
             "uptime_s": time.monotonic() - self._started_at,
             "bad_payloads": dict(self.bad_payloads),
+            "received": dict(self.received),
+            "delivered": dict(self.delivered),
             "clock_s": self.clock.now(),
             **self.extra_stats,
         }
@@ -216,8 +221,10 @@ class Node:
         """
         decode = self._decoder(name, msg_type)
         is_coro = asyncio.iscoroutinefunction(callback)
+        key = self.keys(name)
 
         def deliver(msg: Any) -> None:
+            self.delivered[key] += 1
             try:
                 if is_coro:
                     self.spawn(callback(msg))
@@ -227,10 +234,12 @@ class Node:
                 self.log.exception("handler of %s failed", name)
 
         def on_sample(sample: zenoh.Sample) -> None:
+            self.received[key] += 1
             msg = decode(sample)
             if msg is None:
                 return
             if on_zenoh_thread and not is_coro:
+                self.delivered[key] += 1
                 try:
                     callback(msg)
                 except Exception:
@@ -238,13 +247,14 @@ class Node:
             else:
                 self.loop.call_soon_threadsafe(deliver, msg)
 
-        key = self.keys(name)
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         if latched:
             self._declared.append(LatchedFetch(self.session, key, on_sample))
 
-    def subscription(self, name: str, *, maxlen: int = 1, **kwargs: Any) -> AsyncIterator[Any]:
-        """An async iterator over messages on ``name`` keeping at most ``maxlen`` unread (oldest dropped)."""
+    def subscription(self, name: str, *, maxlen: int | None = 1, **kwargs: Any) -> AsyncIterator[Any]:
+        """An async iterator over messages on ``name`` keeping at most ``maxlen`` unread (oldest dropped): the
+        default 1 is "latest only", for control topics where a stale message is worse than none; ``None`` keeps
+        every message in order however long the consumer is away (a replayed log)."""
         queue: collections.deque[Any] = collections.deque(maxlen=maxlen)
         ready = asyncio.Event()
 

@@ -47,10 +47,17 @@ from services.common.service import ServiceContext
 from services.localization.config import LocalizationConfig
 from services.localization.node import LocalizationNode, Outputs
 from services.localization.odom_history import OdomHistory
+from services.localization.scan_queue import ScanQueue
 from services.localization.slam.live import LiveMapper
 from services.localization.slam.map_files import FREE_THRESH, OCCUPIED_THRESH, write_ros_map, write_trajectory
 from services.localization.slam.mapper import SlamConfig, scan_to_points
 from services.localization.slam.occupancy import OccupancyGrid
+
+#: odometry kept in synchronous mode (bag s): Zenoh hands each topic to the loop from its own thread, so under load
+#: the odom of a scan may arrive well after the scan (or the scans after their odom); every scan still finds its odom
+SYNC_ODOM_HISTORY_S = 60.0
+#: scans that may wait for their odom in synchronous mode (about a minute of a 5-10 Hz lidar)
+SYNC_SCANS_WAITING = 600
 
 #: covariance reported with SLAM poses (x, y: (2 cm)^2; theta: (1°)^2)
 SLAM_COVARIANCE = [4e-4, 0.0, 0.0, 0.0, 4e-4, 0.0, 0.0, 0.0, 3e-4]
@@ -79,8 +86,11 @@ class MappingNode:
                           odom_prior_sigma_theta_rad=cfg.mapping_odom_sigma_theta_rad)
         self.mapper = LiveMapper(slam, start_pose=start_pose, min_travel_m=cfg.mapping_min_travel_m,
                                  min_turn_rad=cfg.mapping_min_turn_rad)
-        self.odom = OdomHistory(cfg.odom_history_s)
+        self.odom = OdomHistory(max(cfg.odom_history_s, SYNC_ODOM_HISTORY_S) if cfg.mapping_sync
+                                else cfg.odom_history_s)
         self.pending_scan: LaserScan | None = None
+        # synchronous mode: scans wait, in order, for the odom that passes their stamp (tf2's MessageFilter)
+        self.waiting_scans: ScanQueue[LaserScan] = ScanQueue(SYNC_SCANS_WAITING)
         self._newest_scan: LaserScan | None = None
         self._inbox: collections.deque[Odometry | LaserScan] = collections.deque()  # mapping_sync
         self._drain_scheduled = False
@@ -141,15 +151,29 @@ class MappingNode:
             asyncio.get_running_loop().call_soon(self._drain)
 
     def _drain(self) -> None:
-        while self._inbox:
+        """Synchronous mode, one turn of the loop: take odom in arrival order until one scan has been processed."""
+        processed = self._process_ready_scan()
+        while not processed and self._inbox:
             msg = self._inbox.popleft()
             if isinstance(msg, LaserScan):
-                self._handle_scan(msg)
-                break
-            self._take_odom(msg)
-        self._drain_scheduled = bool(self._inbox)
+                for scan in self.waiting_scans.push(msg):  # the odom stalled: the oldest go with the tolerance
+                    self._process(scan)
+                    processed = True
+                processed = self._process_ready_scan() or processed
+            else:
+                self._take_odom(msg)
+                processed = self._process_ready_scan()
+        self._drain_scheduled = bool(self._inbox) or self.waiting_scans.has_ready(self.odom.latest_stamp)
         if self._drain_scheduled:
             asyncio.get_running_loop().call_soon(self._drain)
+
+    def _process_ready_scan(self) -> bool:
+        """Synchronous mode: process the oldest waiting scan once the odom covers its stamp."""
+        scan = self.waiting_scans.pop_ready(self.odom.latest_stamp)
+        if scan is None:
+            return False
+        self._process(scan)
+        return True
 
     def _take_newest_scan(self) -> None:
         msg, self._newest_scan = self._newest_scan, None

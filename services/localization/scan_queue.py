@@ -49,5 +49,13 @@ class ScanQueue(Generic[S]):
             out.append(self.waiting.popleft())
         return out
 
+    def has_ready(self, latest_odom_stamp: float | None) -> bool:
+        """Whether the oldest waiting scan is stamped at or before ``latest_odom_stamp``."""
+        return bool(self.waiting) and latest_odom_stamp is not None and self.waiting[0].stamp <= latest_odom_stamp
+
+    def pop_ready(self, latest_odom_stamp: float | None) -> S | None:
+        """The oldest waiting scan when the odom covers its stamp (``has_ready``), else None."""
+        return self.waiting.popleft() if self.has_ready(latest_odom_stamp) else None
+
     def clear(self) -> None:
         self.waiting.clear()
