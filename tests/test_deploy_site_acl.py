@@ -24,9 +24,10 @@ import zenoh
 
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from tests.support.router import RouterProcess
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
-from tests.test_deploy_zenoh_acl import MAKE_CERTS, ZENOH_DIR, Router, make_certs
+from tests.test_deploy_zenoh_acl import MAKE_CERTS, ZENOH_DIR, make_certs
 
 pytestmark = pytest.mark.integration
 SENTINEL_KEY = "zagv-test/sentinel"
@@ -75,12 +76,12 @@ def robot_config(cert_dir: Path, name: str, tcp_port: int, tls_port: int, site_t
     return conf
 
 
-def start_router(path: Path, conf: dict) -> Router:
+def start_router(path: Path, conf: dict) -> RouterProcess:
     path.write_text(json.dumps(conf, indent=1))
-    router = Router(path)
-    wait_for_sync(lambda: any("listening on" in line for line in router.lines) or router.proc.poll() is not None,
+    router = RouterProcess(["--config", str(path)]).start()
+    wait_for_sync(lambda: any("listening on" in line for line in router.lines) or not router.running(),
                   timeout_s=30, message=f"router {path.name} did not start")
-    assert router.proc.poll() is None, f"router {path.name} exited:\n{router.output()}"
+    assert router.running(), f"router {path.name} exited:\n{router.output()}"
     return router
 
 
