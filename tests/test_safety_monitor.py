@@ -183,3 +183,82 @@ def test_no_contact_backing_into_a_wall_the_scanner_cannot_see_any_more():
         t += dt
     assert x - R - (-1.5) > 0.0  # never touched
     assert x - R - (-1.5) < 0.06  # and it did back up to it
+
+
+# --------------------------------------------------------------------------- late scans carried by odometry
+
+
+def odom_trace(mon: CollisionMonitor, poses: list[tuple[float, tuple[float, float, float]]]) -> None:
+    for stamp, pose in poses:
+        mon.note_odom(stamp, pose)
+
+
+def test_a_late_scan_is_judged_where_odometry_says_the_base_is_now():
+    """Wall 2.0 m ahead when scanned at t = 0; by t = 1.0 odometry has the base 1.30 m further on: 0.07 m from the
+    footprint, inside the slow-down zone, and 1.34 m on it is inside the stop zone. Unshifted it would be clear."""
+    for moved_m, action in ((1.30, "slowdown"), (1.34, "stop"), (0.5, "clear")):
+        mon = monitor_with(wall_x(2.0), stamp=0.0, time_before_collision_s=0.05, simulation_step_s=0.05)
+        odom_trace(mon, [(0.02 * k, (moved_m * k / 50, 0.0, 0.0)) for k in range(51)])
+        v = mon.filter(0.2, 0.0, 0.0, now=1.0)
+        assert v.action == action, (moved_m, v)
+        if action != "clear":
+            assert v.nearest_m == pytest.approx(2.0 - moved_m - R, abs=1e-6)
+
+
+def test_a_turn_since_the_scan_moves_the_wall_beside_the_robot():
+    mon = monitor_with(wall_x(R + 0.2), stamp=0.0)
+    odom_trace(mon, [(0.1 * k, (0.0, 0.0, math.pi / 2 * k / 10)) for k in range(11)])  # quarter turn left by t = 1
+    assert mon.filter(0.2, 0.0, 0.0, now=1.0).action == "clear"  # the wall is now on the right
+    assert mon.filter(0.0, -0.2, 0.0, now=1.0).action in ("slowdown", "approach")  # strafing right meets it
+
+
+def test_late_scan_limits_odometry_cannot_lift():
+    # older than scan_timeout_s: stop, even with odometry
+    mon = monitor_with(wall_x(10.0), stamp=0.0)
+    odom_trace(mon, [(0.1 * k, (0.0, 0.0, 0.0)) for k in range(22)])
+    assert mon.filter(0.2, 0.0, 0.0, now=1.9).action == "clear"
+    v = mon.filter(0.2, 0.0, 0.0, now=2.1)
+    assert v.action == "no_scan" and "2.10 s old" in v.reason
+    # odometry that stopped (a CAN link loss) cannot carry a scan past the uncorrected limit
+    mon = monitor_with(wall_x(10.0), stamp=0.0)
+    odom_trace(mon, [(0.1 * k, (0.0, 0.0, 0.0)) for k in range(4)])  # last pose at 0.3 s
+    assert mon.filter(0.2, 0.0, 0.0, now=0.75).action == "clear"
+    v = mon.filter(0.2, 0.0, 0.0, now=0.9)
+    assert v.action == "no_scan" and "no odometry to carry it" in v.reason
+    # odometry that does not reach back to the scan's stamp cannot place it either
+    mon = monitor_with(wall_x(10.0), stamp=0.0)
+    odom_trace(mon, [(0.5 + 0.1 * k, (0.0, 0.0, 0.0)) for k in range(5)])
+    assert mon.filter(0.2, 0.0, 0.0, now=0.9).action == "no_scan"
+    # correction switched off: the uncorrected limit holds
+    mon = monitor_with(wall_x(10.0), stamp=0.0, base_shift_correction=False)
+    odom_trace(mon, [(0.1 * k, (0.0, 0.0, 0.0)) for k in range(10)])
+    assert mon.filter(0.2, 0.0, 0.0, now=0.9).action == "no_scan"
+
+
+def test_odometry_history_interpolates_and_restarts_with_the_clock():
+    mon = CollisionMonitor(SafetyParams())
+    odom_trace(mon, [(1.0, (0.0, 0.0, 3.0)), (2.0, (1.0, 0.0, -3.0))])
+    x, y, theta = mon.odom_at(1.5) or (math.nan,) * 3
+    assert (x, y) == pytest.approx((0.5, 0.0)) and abs(abs(theta) - math.pi) < 1e-9  # the short way round ±pi
+    assert mon.odom_at(0.9) is None and mon.odom_at(2.4) == (1.0, 0.0, -3.0) and mon.odom_at(2.6) is None
+    mon.note_odom(0.05, (5.0, 5.0, 0.0))  # the simulator restarted at 0: the old history is gone
+    assert mon.odom_at(1.5) is None and mon.odom_at(0.05) == (5.0, 5.0, 0.0)
+    mon.note_odom(0.1, (math.nan, 0.0, 0.0))  # non-finite poses are not noted
+    assert mon.odom_at(0.1) == (5.0, 5.0, 0.0)
+
+
+def test_closed_loop_with_scans_a_second_late_still_never_touches():
+    """The scan arrives 1.0 s after it was taken (load); odometry carries it. Driving at a wall at 0.2 m/s, the
+    robot stops short of it and does not touch it."""
+    mon = CollisionMonitor(SafetyParams())
+    x, dt, wall, lag_steps = 0.0, 0.02, 3.0, 50
+    xs = [0.0]
+    for k in range(1, 2000):
+        mon.note_odom(k * dt, (x, 0.0, 0.0))
+        if k >= lag_steps:
+            seen_at = k - lag_steps
+            mon.update_scan(wall_x(wall - xs[seen_at]), seen_at * dt)
+        vx = mon.filter(0.2, 0.0, 0.0, now=k * dt).twist[0] if k >= lag_steps else 0.0
+        x += vx * dt
+        xs.append(x)
+    assert 0.0 < wall - x - R < 0.08

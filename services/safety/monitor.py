@@ -16,7 +16,14 @@ wins:
   touches a point at t_c < ``time_before_collision_s``: translation scaled by t_c / time_before_collision_s, so the
   speed falls with the distance left and the robot can always stop before contact.
 
-No scan newer than ``scan_timeout_s`` (or a non-finite command) gives a zero twist: the monitor fails safe.
+Scan age (Nav2's ``source_timeout`` and ``base_shift_correction``): a scan is judged where the base is now, not
+where it was when the scan was taken. With odometry poses noted around the scan's stamp, its points are moved by the
+base's odometry motion since then, p_now = (⊖o_latest ⊕ o_scan) p, and the footprint is grown by the distance the
+base can have gone since the newest odometry, |v| (now − t_odom). A scan is used up to ``scan_timeout_s`` old this
+way; one odometry cannot carry (none noted, or not reaching back to its stamp, or odometry itself older than
+``uncorrected_scan_timeout_s``) only up to ``uncorrected_scan_timeout_s``. Past that, or on a non-finite command, the
+twist is zero: the monitor fails safe. A late scan under load therefore slows nothing that odometry can account for,
+and a scan that stops arriving still stops the robot.
 
 Blind sector: a 270° scanner mounted at the front cannot see behind the robot, so a back-up or a sideways move
 into that wedge would be judged on no points at all. With an odometry pose at each scan, the monitor keeps a
@@ -30,13 +37,16 @@ travel ago (odometry drifts with distance, not with time: a robot standing still
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import msgspec
 import numpy as np
 
 from services.common.clock import is_fresh
-from services.common.se2 import inverse, transform_points, wrap_angle
+from services.common.se2 import between, interpolate, inverse, transform_points, wrap_angle
+
+Pose = tuple[float, float, float]
 
 
 class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
@@ -48,7 +58,12 @@ class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     slowdown_ratio: float = 0.4
     time_before_collision_s: float = 1.5
     simulation_step_s: float = 0.05
-    scan_timeout_s: float = 0.5
+    #: a scan older than this (s) stops the robot even when odometry carries it (Nav2's ``source_timeout``)
+    scan_timeout_s: float = 2.0
+    #: a scan odometry cannot carry to the present stops the robot past this age (s)
+    uncorrected_scan_timeout_s: float = 0.5
+    #: judge a scan where the base is now, moving its points by the odometry motion since its stamp
+    base_shift_correction: bool = True
     #: translation speeds below this (m/s) are passed without checks (rotation-only commands)
     min_translation_mps: float = 1e-4
     #: odometry travel (m) over which points that left the scanner's field of view are remembered (0: no memory)
@@ -66,7 +81,9 @@ class SafetyParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
             "slowdown_ratio": 0 <= self.slowdown_ratio <= 1,
             "time_before_collision_s": self.time_before_collision_s > 0,
             "simulation_step_s": 0 < self.simulation_step_s <= self.time_before_collision_s,
-            "scan_timeout_s": self.scan_timeout_s > 0, "min_translation_mps": self.min_translation_mps >= 0,
+            "scan_timeout_s": self.scan_timeout_s > 0,
+            "uncorrected_scan_timeout_s": 0 < self.uncorrected_scan_timeout_s <= self.scan_timeout_s,
+            "min_translation_mps": self.min_translation_mps >= 0,
             "memory_travel_m": self.memory_travel_m >= 0, "memory_radius_m": self.memory_radius_m > 0,
             "memory_cell_m": self.memory_cell_m > 0,
         }
@@ -128,7 +145,53 @@ class CollisionMonitor:
         self.memory = np.zeros((0, 2))  # odom frame (m)
         self.memory_seen_at_m = np.zeros(0)  # the odometry travel when each point was last seen (m)
         self.travelled_m = 0.0
-        self.last_odom: tuple[float, float, float] | None = None
+        self.last_odom: Pose | None = None
+        self.odom_stamps: deque[float] = deque()
+        self.odom_poses: deque[Pose] = deque()
+
+    def note_odom(self, stamp: float, pose: Pose) -> None:
+        """An odometry pose of the base (odom frame) at ``stamp``; kept for ``scan_timeout_s`` and a second more, so
+        that a scan can be placed where the base was when it was taken. A stamp behind the newest one (a clock
+        restart) starts the history again."""
+        if not (math.isfinite(stamp) and all(math.isfinite(v) for v in pose)):
+            return
+        if self.odom_stamps and stamp <= self.odom_stamps[-1]:
+            if stamp == self.odom_stamps[-1]:
+                return
+            self.odom_stamps.clear()
+            self.odom_poses.clear()
+        self.odom_stamps.append(stamp)
+        self.odom_poses.append(pose)
+        horizon = stamp - self.params.scan_timeout_s - 1.0
+        while len(self.odom_stamps) > 2 and self.odom_stamps[1] < horizon:
+            self.odom_stamps.popleft()
+            self.odom_poses.popleft()
+
+    def odom_at(self, stamp: float) -> Pose | None:
+        """The odometry pose at ``stamp``, interpolated between the noted poses around it; the newest pose for a
+        stamp up to ``uncorrected_scan_timeout_s`` past it; None when no pose was noted that early or that late."""
+        if not self.odom_stamps or not math.isfinite(stamp) or stamp < self.odom_stamps[0]:
+            return None
+        if stamp >= self.odom_stamps[-1]:
+            if stamp - self.odom_stamps[-1] > self.params.uncorrected_scan_timeout_s:
+                return None
+            return self.odom_poses[-1]
+        x, y, theta = interpolate(np.fromiter(self.odom_stamps, float, len(self.odom_stamps)),
+                                  np.array(self.odom_poses, dtype=np.float64), stamp)[0]
+        return float(x), float(y), float(theta)
+
+    def base_shift(self, now: float) -> tuple[Pose, float] | None:
+        """The base's odometry motion from the scan's stamp to the newest odometry pose (in the base frame at the
+        scan) and the time since that pose (s); None when correction is off or odometry cannot carry the scan."""
+        if not self.params.base_shift_correction or not self.odom_stamps:
+            return None
+        since_odom_s = now - self.odom_stamps[-1]
+        if not -self.params.uncorrected_scan_timeout_s <= since_odom_s <= self.params.uncorrected_scan_timeout_s:
+            return None
+        at_scan = self.odom_at(self.scan_stamp)
+        if at_scan is None:
+            return None
+        return between(at_scan, self.odom_poses[-1]), max(since_odom_s, 0.0)
 
     def update_scan(self, points: np.ndarray, stamp: float, odom_pose: tuple[float, float, float] | None = None,
                     view: FieldOfView | None = None) -> None:
@@ -176,7 +239,23 @@ class CollisionMonitor:
         self.memory, self.memory_seen_at_m = odom_points[pick], seen_at_m[pick]
 
     def scan_fresh(self, now: float) -> bool:
-        return is_fresh(self.scan_stamp, now, self.params.scan_timeout_s)
+        """Young enough to be judged on: within ``uncorrected_scan_timeout_s``, or within ``scan_timeout_s`` when
+        odometry carries it to the present."""
+        if is_fresh(self.scan_stamp, now, self.params.uncorrected_scan_timeout_s):
+            return True
+        return is_fresh(self.scan_stamp, now, self.params.scan_timeout_s) and self.base_shift(now) is not None
+
+    def _stale(self, now: float) -> Verdict:
+        age = now - self.scan_stamp
+        if not math.isfinite(age):
+            why = "no scan yet"
+        elif age < 0:
+            why = f"last scan stamped {self.scan_stamp:.2f} s, ahead of now {now:.2f} s (clock restarted)"
+        elif age > self.params.scan_timeout_s:
+            why = f"last scan {age:.2f} s old"
+        else:
+            why = f"last scan {age:.2f} s old and no odometry to carry it to the present"
+        return Verdict((0.0, 0.0, 0.0), "no_scan", 0.0, -1.0, why)
 
     def filter(self, vx: float, vy: float, wz: float, now: float) -> Verdict:
         """The twist allowed for the command (vx, vy, wz) at time ``now``."""
@@ -184,14 +263,17 @@ class CollisionMonitor:
         if not all(math.isfinite(v) for v in (vx, vy, wz)):
             return Verdict((0.0, 0.0, 0.0), "stop", 0.0, -1.0, f"non-finite command ({vx}, {vy}, {wz})")
         if not self.scan_fresh(now):
-            age = now - self.scan_stamp
-            why = ("no scan yet" if not math.isfinite(age) else f"last scan {age:.2f} s old" if age >= 0
-                   else f"last scan stamped {self.scan_stamp:.2f} s, ahead of now {now:.2f} s (clock restarted)")
-            return Verdict((0.0, 0.0, 0.0), "no_scan", 0.0, -1.0, why)
+            return self._stale(now)
         speed = math.hypot(vx, vy)
         if speed <= p.min_translation_mps or self.points.shape[0] == 0:
             return Verdict((vx, vy, wz), "clear", 1.0, -1.0, "")
-        nearest = self.travel_to_contact(vx / speed, vy / speed)
+        shift = self.base_shift(now)
+        points, radius_m = self.points, p.robot_radius_m
+        if shift is not None:
+            motion, since_odom_s = shift
+            points = transform_points(inverse(motion), points)
+            radius_m += speed * since_odom_s
+        nearest = self.travel_to_contact(vx / speed, vy / speed, points, radius_m)
         if nearest is not None and nearest < p.stop_margin_m:
             return Verdict((0.0, 0.0, wz), "stop", 0.0, nearest,
                            f"obstacle {max(nearest, 0.0):.2f} m ahead of the footprint")
@@ -199,7 +281,7 @@ class CollisionMonitor:
         if nearest is not None and nearest < p.slowdown_margin_m:
             scale, action = p.slowdown_ratio, "slowdown"
             reason = f"obstacle {nearest:.2f} m ahead of the footprint"
-        t_c = self.time_to_contact(vx, vy, wz)
+        t_c = self.time_to_contact(vx, vy, wz, points, radius_m)
         if t_c is not None:
             approach = t_c / p.time_before_collision_s
             if approach < scale:
@@ -207,13 +289,15 @@ class CollisionMonitor:
                 reason = f"contact in {t_c:.2f} s at the commanded speed"
         return Verdict((vx * scale, vy * scale, wz), action, scale, -1.0 if nearest is None else nearest, reason)
 
-    def travel_to_contact(self, ux: float, uy: float) -> float | None:
+    def travel_to_contact(self, ux: float, uy: float, points: np.ndarray | None = None,
+                          radius_m: float | None = None) -> float | None:
         """Distance (m) the footprint can translate along the unit direction (ux, uy) before it touches a point:
         min over points ahead in its swept band (lateral offset h < r) of p·u − sqrt(r² − h²); None when clear.
         A point beside the band is never reached by a translation, so a wall the robot drives along stops nothing.
+        ``points`` (base frame) default to the latest scan's, ``radius_m`` to the footprint's.
         """
-        r = self.params.robot_radius_m
-        pts = self.points
+        r = self.params.robot_radius_m if radius_m is None else radius_m
+        pts = self.points if points is None else points
         along = pts[:, 0] * ux + pts[:, 1] * uy
         lateral = pts[:, 1] * ux - pts[:, 0] * uy
         band = (np.abs(lateral) < r) & (along > -r)
@@ -225,8 +309,10 @@ class CollisionMonitor:
         travel = travel[~inside_behind]
         return float(travel.min()) if travel.size else None
 
-    def time_to_contact(self, vx: float, vy: float, wz: float) -> float | None:
-        """First time (s) within the look-ahead at which a point enters the stop circle moved along the twist."""
+    def time_to_contact(self, vx: float, vy: float, wz: float, points: np.ndarray | None = None,
+                        radius_m: float | None = None) -> float | None:
+        """First time (s) within the look-ahead at which a point enters the stop circle moved along the twist
+        (``points`` and ``radius_m`` as in ``travel_to_contact``)."""
         p = self.params
         steps = max(1, math.ceil(p.time_before_collision_s / p.simulation_step_s))
         t = np.arange(1, steps + 1) * (p.time_before_collision_s / steps)
@@ -236,11 +322,11 @@ class CollisionMonitor:
         else:
             s, c1 = np.sin(wz * t) / wz, (1.0 - np.cos(wz * t)) / wz
             cx, cy = s * vx - c1 * vy, c1 * vx + s * vy
-        points = self.points
+        points = self.points if points is None else points
         # only points the footprint is not already touching can be contacted, and only within reach: the centre
         # moves at most |v| T along its arc, so a point farther than |v| T + r from it now is never inside the circle
         start_d2 = points[:, 0] ** 2 + points[:, 1] ** 2
-        r = p.robot_radius_m
+        r = p.robot_radius_m if radius_m is None else radius_m
         reach_m = math.hypot(vx, vy) * float(t[-1]) + r
         points = points[(start_d2 >= r * r) & (start_d2 < reach_m * reach_m)]
         d2 = (points[None, :, 0] - cx[:, None]) ** 2 + (points[None, :, 1] - cy[:, None]) ** 2

@@ -5,8 +5,9 @@ Every command (nav's, the HMI jog's) is filtered by the collision monitor and fo
 (while younger than ``cmd_timeout_s``) against the newest scan, so an obstacle that appears, or a scan that stops,
 changes the command within one watch period even when the commander is silent or slow. ``safety/state`` (latched)
 carries the verdict; it is published at once when the action changes and at ``state_publish_hz`` otherwise.
-``odom`` (the newest pose, when younger than ``scan_timeout_s`` at a scan) lets the monitor remember what left the
-scanner's field of view; without it each scan is judged alone.
+``odom`` poses are noted in the monitor: a late scan is judged where the base is now (moved by the odometry motion
+since its stamp), and the pose at a scan's stamp lets the monitor remember what left the scanner's field of view.
+Without odometry each scan is judged alone, and only while younger than ``uncorrected_scan_timeout_s``.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ class SafetyNode:
         self.last_sent: tuple[float, float, float] | None = None
         self.last_action = ""
         self.last_state_at = -math.inf
-        self.odom: m.Odometry | None = None
         self.interventions = 0
         self.stats = ctx.node.extra_stats
         self.stats.update(commands=0, interventions=0, stops=0, bad_scans=0)
@@ -66,18 +66,16 @@ class SafetyNode:
                              (msg.mount.x, msg.mount.y, msg.mount.theta))
         # freshness is judged on this service's clock: a scan counts from when it arrived, never from the future
         now = self.ctx.clock.now()
-        odom = self.odom
-        pose = None
-        if odom is not None and abs(msg.stamp - odom.stamp) <= self.cfg.scan_timeout_s:
-            pose = (odom.pose.x, odom.pose.y, odom.pose.theta)
+        stamp = min(msg.stamp, now)
+        pose = self.monitor.odom_at(stamp)
         last_beam = msg.angle_min + max(len(ranges) - 1, 0) * msg.angle_increment
         view = FieldOfView((msg.mount.x, msg.mount.y, msg.mount.theta), min(msg.angle_min, last_beam),
                            max(msg.angle_min, last_beam))
-        self.monitor.update_scan(points, min(msg.stamp, now), pose, view)
+        self.monitor.update_scan(points, stamp, pose, view)
 
     def on_odom(self, msg: m.Odometry) -> None:
         if all(math.isfinite(v) for v in (msg.stamp, msg.pose.x, msg.pose.y, msg.pose.theta)):
-            self.odom = msg
+            self.monitor.note_odom(msg.stamp, (msg.pose.x, msg.pose.y, msg.pose.theta))
 
     def on_cmd(self, msg: m.Twist2D) -> None:
         self.stats["commands"] += 1
