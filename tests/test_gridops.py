@@ -78,7 +78,7 @@ def test_quadratic_sample_compiled_gives_numpy_bits(seed: int) -> None:
     points = np.vstack([points, ties, [[np.nan, 2.5], [0.0, np.inf]]])
     value, grad = gridops.quadratic_sample(field, origin, res, points)
     ref_value, ref_grad = gridops._quadratic_sample_numpy(field, origin, res, points)
-    assert gridops._gridops is not None, "the C extension was not built (make install)"
+    assert gridops._compiled_quadratic_sample is not None, "the C extension was not built (make install)"
     assert np.array_equal(value, ref_value) and np.array_equal(grad, ref_grad)
     inside = (value != 0.0).sum()
     assert 0 < inside < len(points)  # both branches were exercised
@@ -92,3 +92,12 @@ def test_quadratic_sample_refuses_wrong_types() -> None:
         gridops._gridops.quadratic_sample(np.zeros((4, 4)), 0.0, 0.0, 0.1, np.zeros((1, 2)))
     with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
         gridops._gridops.quadratic_sample(np.zeros((4, 4), np.float32), 0.0, 0.0, 0.1, np.zeros((2, 3)))
+
+
+def test_an_extension_built_from_older_source_falls_back_to_numpy(monkeypatch) -> None:
+    """An extension built before ``quadratic_sample`` existed lacks it: sampling falls back, it does not raise."""
+    monkeypatch.setattr(gridops, "_compiled_quadratic_sample", None)
+    field = np.arange(36, dtype=np.float32).reshape(6, 6)
+    value, grad = gridops.quadratic_sample(field, np.zeros(2), 0.1, np.array([[0.25, 0.25]]))
+    ref_value, ref_grad = gridops._quadratic_sample_numpy(field, np.zeros(2), 0.1, np.array([[0.25, 0.25]]))
+    assert value[0] != 0.0 and np.array_equal(value, ref_value) and np.array_equal(grad, ref_grad)

@@ -18,6 +18,8 @@ try:
     import services.common._gridops as _gridops
 except ImportError:  # built at install where a C compiler was available (setup.py)
     _gridops = None
+# an extension built from an older source lacks the newer entry points: each falls back to NumPy on its own
+_compiled_quadratic_sample = getattr(_gridops, "quadratic_sample", None)
 
 
 def distance_transform_edt(grid: np.ndarray, sampling: float = 1.0) -> np.ndarray:
@@ -65,9 +67,9 @@ def quadratic_sample(field: np.ndarray, origin_xy_m: np.ndarray, resolution_m: f
     """
     field = np.ascontiguousarray(field, dtype=np.float32)
     points = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
-    if _gridops is not None:
+    if _compiled_quadratic_sample is not None:
         n = len(points)
-        out = np.frombuffer(_gridops.quadratic_sample(field, float(origin_xy_m[0]), float(origin_xy_m[1]),
+        out = np.frombuffer(_compiled_quadratic_sample(field, float(origin_xy_m[0]), float(origin_xy_m[1]),
                                                       float(resolution_m), points), dtype=np.float64)
         return out[:n], out[n:].reshape(n, 2)
     return _quadratic_sample_numpy(field, origin_xy_m, resolution_m, points)
