@@ -122,6 +122,20 @@ def test_pending_closure_needs_a_consistent_partner():
     assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
 
 
+def test_closures_of_different_revisits_do_not_confirm_each_other():
+    """Two wrong closures to places far apart along the path agree within the tolerance a long cycle allows
+    (0.3 m + 0.01 m per m of path: 0.54 m over 24 m) but are no evidence for each other: only a closure of the same
+    revisit, within ``loop_consistency_max_path_m`` of path, can confirm one."""
+    slam = _chain_graph(80)
+    poses = slam.graph.poses()
+    a = LoopClosure(0, 60, compose(between(poses[0], poses[60]), np.array([0.3, 0.2, 0.0])), 0.5)
+    b = LoopClosure(12, 72, compose(between(poses[12], poses[72]), np.array([0.6, 0.45, 0.0])), 0.8)
+    assert slam._path_length(a.to, b.to) + slam._path_length(a.from_, b.from_) == pytest.approx(24.0)
+    assert not slam._consistent(a, b, poses)
+    slam.config.loop_consistency_max_path_m = 30.0
+    assert slam._consistent(a, b, poses)  # what the long cycle's tolerance alone would have let through
+
+
 @pytest.mark.timeout(900)  # two SLAM runs over 150 scans: ~8 s of CPU
 def test_mount_offset_does_not_change_the_result(logs_dir):
     """The same scans re-expressed for a laser 0.25 m ahead and 0.05 m left of the robot frame, and the

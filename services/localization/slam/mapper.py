@@ -39,7 +39,9 @@ Back end: a candidate that agrees with the graph (its correction is below ``loop
 ``loop_trusted_theta_rad``) is accepted at once. One that would bend the graph further is held pending until another
 candidate within ``loop_consistency_keyframes`` keyframes agrees with it: the cycle z_a ⊕ T(a.to → b.to) ⊕ z_b⁻¹ ⊕
 T(b.from → a.from), with T the current graph's relative poses, must be near identity (tolerance growing with the
-path lengths inside the cycle; Olson 2009's pairwise consistency). A pending candidate that nobody confirms in time
+path lengths inside the cycle; Olson 2009's pairwise consistency). Only closures of the same revisit count: with
+more than ``loop_consistency_max_path_m`` of path inside the cycle, the tolerance would have grown too loose to be
+evidence. A pending candidate that nobody confirms in time
 is rejected. After every optimisation, accepted closures whose residual χ² = eᵀΩe exceeds ``loop_max_chi2`` are
 switched off and the graph re-optimised (they contradict the rest of the graph). ``loop_closures`` lists the
 accepted closures, ``rejected_closures`` the rejected ones. Non-keyframe scans are stored relative to their keyframe
@@ -128,6 +130,10 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_consistency_xy_m: float = 0.3
     loop_consistency_theta_rad: float = 0.05
     loop_consistency_per_m: float = 0.01
+    #: heading tolerance growth (rad per m of path in the cycle): scan-matched heading drifts far less than 0.01/m
+    loop_consistency_theta_per_m: float = 0.002
+    #: only closures of the same revisit confirm each other: path inside the cycle (m) at most this
+    loop_consistency_max_path_m: float = 15.0
     loop_max_chi2: float = 50.0
     loop_search_radius_m: float = 4.0
     #: > 0 (opt-in): the search radius and the loop correlative window grow by this many σ of the newest keyframe's
@@ -619,9 +625,11 @@ class GraphSlam:
         cycle = compose(compose(compose(a.measurement, between(poses[a.to], poses[b.to])), inverse(b.measurement)),
                         between(poses[b.from_], poses[a.from_]))
         path = self._path_length(a.to, b.to) + self._path_length(a.from_, b.from_)
+        if path > c.loop_consistency_max_path_m:  # two closures of different revisits: no evidence for each other
+            return False
         return bool(np.hypot(cycle[0], cycle[1]) <= c.loop_consistency_xy_m + c.loop_consistency_per_m * path
                     and abs(float(wrap_angle(cycle[2]))) <= c.loop_consistency_theta_rad
-                    + c.loop_consistency_per_m * path)
+                    + c.loop_consistency_theta_per_m * path)
 
     def _check_pending(self, k: int) -> None:
         """Accept pending candidates confirmed by another candidate; reject those too old to be confirmed."""
