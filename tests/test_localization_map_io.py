@@ -143,3 +143,49 @@ def test_cli_map_info(shared_dir, capsys):
 def test_cli_map_info_bad_file(tmp_path, capsys):
     assert zagv_main(["map", "info", str(tmp_path / "none.yaml")]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_coarsen_keeps_thin_walls_and_needs_most_of_a_block_free() -> None:
+    from services.common.map_io import coarsen
+
+    data = np.zeros((4, 6), dtype=np.int8)
+    data[:, 1] = 100          # a wall one fine cell thick
+    data[0:2, 4:6] = -1       # a block with nothing known
+    data[2, 4] = -1           # 3 of 4 known, all free
+    data[2:4, 2] = -1         # half known: 2 free of 2 known
+    grid = OccupancyMap(data, 0.05, (1.0, 2.0, 0.5))
+    coarse = coarsen(grid, 2)
+    assert coarse.resolution == pytest.approx(0.10) and coarse.origin == (1.0, 2.0, 0.5)
+    assert coarse.data.tolist() == [[100, 0, -1], [100, 0, 0]]
+    with pytest.raises(MapError, match="whole number"):
+        coarsen(grid, 0)
+    assert np.array_equal(coarsen(grid, 1).data, data)
+
+
+def test_coarsen_pads_a_partial_block_with_unknown_and_round_trips(tmp_path) -> None:
+    from services.common.map_io import coarsen
+
+    grid = OccupancyMap(np.zeros((5, 5), dtype=np.int8), 0.05)
+    coarse = coarsen(grid, 2)
+    assert coarse.data.shape == (3, 3)
+    assert coarse.data[2, 2] == -1 and coarse.data[0, 2] == 0  # a quarter known / half known
+    yaml_path, _ = save_map(coarse, tmp_path / "coarse")
+    back = load_map(yaml_path)
+    assert np.array_equal(back.data, coarse.data) and back.resolution == pytest.approx(0.10)
+
+
+def test_every_shared_map_coarsens_to_a_tenth_of_a_metre(shared_dir) -> None:
+    """A real map re-rastered onto about 0.10 m keeps every occupied cell's place covered and most free space."""
+    from services.common.map_io import coarsen
+
+    for yaml_path in sorted((shared_dir / "data" / "maps").glob("*/*.yaml")):
+        grid = load_map(yaml_path)
+        k = round(0.10 / grid.resolution)
+        if k < 2:
+            continue
+        coarse = coarsen(grid, k)
+        rows, cols = np.nonzero(grid.data == 100)
+        assert (coarse.data[rows // k, cols // k] == 100).all(), yaml_path.name
+        free_fine = (grid.data == 0).sum() * grid.resolution ** 2
+        free_coarse = (coarse.data == 0).sum() * coarse.resolution ** 2
+        assert 0.5 * free_fine < free_coarse <= free_fine * 1.5, (yaml_path.name, free_fine, free_coarse)

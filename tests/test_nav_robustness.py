@@ -310,3 +310,24 @@ def test_a_relaxed_plan_request_is_a_snapshot_the_costmap_update_cannot_change()
         nav.global_costmap.master.cost[:] = LETHAL  # the loop thread rewrites the grid while the search runs
         assert nav.compute_plan(req).error == "", relaxed
         nav.global_costmap.set_map(np.zeros((100, 400), dtype=np.int8), 0.05, 0.0, 0.0)
+
+
+def test_a_suite_map_can_be_re_rastered_onto_a_coarser_cell(tmp_path: Path) -> None:
+    import numpy as np
+
+    from services.common.map_io import OccupancyMap, load_map, save_map
+    from services.scenario.suite import SuiteMap, coarse_map
+
+    data = np.zeros((40, 60), dtype=np.int8)
+    data[0, :] = data[-1, :] = data[:, 0] = data[:, -1] = 100
+    yaml_path, _ = save_map(OccupancyMap(data, 0.05, (-1.0, -1.0, 0.0)), tmp_path / "room")
+    (tmp_path / "suite.toml").write_text(f'[[maps]]\nname = "room"\nmap = "{yaml_path}"\ncell_m = 0.1\n')
+    suite, _ = load_suite(tmp_path / "suite.toml", None)
+    entry = suite.maps[0]
+    assert entry.cell_m == 0.1
+    coarse = load_map(coarse_map(entry, tmp_path / "run").map_yaml or "")
+    assert coarse.resolution == 0.1 and coarse.data.shape == (20, 30) and coarse.data[0, 5] == 100
+    assert coarse_map(SuiteMap("w", world="warehouse"), tmp_path).world == "warehouse"
+    (tmp_path / "bad.toml").write_text(f'[[maps]]\nmap = "{yaml_path}"\ncell_m = -1\n')
+    with pytest.raises(ValueError, match="cell_m must be a positive number"):
+        load_suite(tmp_path / "bad.toml", None)

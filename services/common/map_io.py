@@ -254,6 +254,28 @@ def load_map(yaml_path: str | Path) -> OccupancyMap:
     return OccupancyMap(np.ascontiguousarray(cells[::-1]), meta["resolution"], meta["origin"])
 
 
+def coarsen(grid: OccupancyMap, k: int) -> OccupancyMap:
+    """The map re-rastered onto cells k times as large, as a mapper with that cell would have drawn it. Each k x k
+    block becomes: occupied when any of its cells is occupied (a thin wall stays a wall), else free when at least
+    half of it is known and at least half of its known cells are free, else unknown. A partial block at the far
+    edges is padded with unknown; the origin is kept."""
+    if not isinstance(k, int) or k < 1:
+        raise MapError(f"coarsen: the factor must be a whole number >= 1, got {k!r}")
+    if k == 1:
+        return OccupancyMap(grid.data.copy(), grid.resolution, grid.origin)
+    rows, cols = -(-grid.height // k), -(-grid.width // k)
+    padded = np.full((rows * k, cols * k), UNKNOWN, dtype=np.int8)
+    padded[:grid.height, :grid.width] = grid.data
+    blocks = padded.reshape(rows, k, cols, k).swapaxes(1, 2).reshape(rows, cols, k * k)
+    occupied = (blocks >= OCCUPIED_THRESH * 100.0).any(axis=2)
+    known = (blocks >= 0).sum(axis=2)
+    free = ((blocks >= 0) & (blocks <= FREE_THRESH * 100.0)).sum(axis=2)
+    out = np.full((rows, cols), UNKNOWN, dtype=np.int8)
+    out[(2 * known >= k * k) & (2 * free >= known)] = FREE
+    out[occupied] = OCCUPIED
+    return OccupancyMap(out, k * grid.resolution, grid.origin)
+
+
 def save_map(grid: OccupancyMap, base: str | Path, *, free_thresh: float = SAVE_FREE_THRESH,
              occupied_thresh: float = SAVE_OCCUPIED_THRESH) -> tuple[Path, Path]:
     """Write ``<base>.yaml`` + ``<base>.pgm`` (trinary) like map_saver; returns both paths.

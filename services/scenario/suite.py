@@ -16,7 +16,12 @@ Suite TOML::
     [[maps]]
     map = "mit_stata_basement/stata_basement.yaml"   # a ROS map YAML, relative to --maps-dir (else the suite file)
     name = "mit_stata_basement"                      # optional row name
+    cell_m = 0.10                                    # optional: re-rastered onto a coarser cell first
 
+``cell_m`` re-rasters the map onto a coarser cell before the run: the whole multiple of the map's cell nearest to it
+(``services.common.map_io.coarsen``: a block is occupied when any of its cells is, free when mostly free), written
+into the run folder: the same building as a
+mapper with a coarser cell would have drawn it, for the sim world, localization and nav alike.
 A map whose YAML is missing is skipped (named in the output); a map on which no goal is reachable for the footprint
 (too narrow for the robot) gets a row saying so and no goals.
 """
@@ -45,6 +50,8 @@ class SuiteMap:
     name: str
     world: str | None = None
     map_yaml: str | None = None
+    #: re-raster the map onto this coarser cell (m) before the run
+    cell_m: float | None = None
 
 
 @dataclass
@@ -72,9 +79,26 @@ def load_suite(path: Path, maps_dir: Path | None) -> tuple[Suite, list[str]]:
         if found is None:
             skipped.append(name)
             continue
-        maps.append(SuiteMap(name, map_yaml=str(found.resolve())))
+        cell_m = e.get("cell_m")
+        if cell_m is not None and not (isinstance(cell_m, int | float) and math.isfinite(cell_m) and cell_m > 0):
+            raise ValueError(f"{path}: maps[{k}].cell_m must be a positive number of metres, got {cell_m!r}")
+        maps.append(SuiteMap(name, map_yaml=str(found.resolve()),
+                             cell_m=None if cell_m is None else float(cell_m)))
     return Suite(maps, int(data.get("goals", 5)), tuple(int(s) for s in data.get("seeds", [1, 2, 3])),
                  float(data.get("speed", 4.0))), skipped
+
+
+def coarse_map(entry: SuiteMap, run_dir: Path) -> SuiteMap:
+    """The entry itself, or with ``cell_m`` its map re-rastered onto the whole multiple of its cell nearest to
+    ``cell_m`` and written into ``run_dir``."""
+    if not (entry.map_yaml and entry.cell_m):
+        return entry
+    from services.common.map_io import coarsen, load_map, save_map
+
+    fine = load_map(entry.map_yaml)
+    factor = max(1, round(entry.cell_m / fine.resolution))
+    coarse_yaml, _ = save_map(coarsen(fine, factor), run_dir / f"{entry.name}_map")
+    return SuiteMap(entry.name, map_yaml=str(coarse_yaml))
 
 
 def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float, extra_set: list[str],
@@ -83,6 +107,7 @@ def run_map(entry: SuiteMap, suite: Suite, run_dir: Path, goal_timeout_s: float,
     from services.launch.stack_process import Stack
 
     row: dict = {"map": entry.name, "runs": [], "note": ""}
+    entry = coarse_map(entry, run_dir)
     files = []
     for seed in suite.seeds:
         try:
