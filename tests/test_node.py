@@ -237,3 +237,17 @@ async def test_a_blocked_loop_still_gets_every_message_in_order_and_latest_only_
     newest = await asyncio.wait_for(anext(latest), 5.0)
     assert newest.stamp == n - 1  # only the newest of the backlog was kept
     node.close()
+
+
+def test_wait_listening_returns_once_a_port_takes_connections_and_names_a_dead_one() -> None:
+    import socket
+
+    from services.common.ports import free_port, wait_listening
+
+    with socket.socket() as server:
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        wait_listening(server.getsockname()[1], timeout_s=5.0)
+    port = free_port()
+    with pytest.raises(TimeoutError, match=f"127.0.0.1:{port} within 0.2 s"):
+        wait_listening(port, timeout_s=0.2)

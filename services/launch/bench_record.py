@@ -119,7 +119,6 @@ def record_corridor(run_dir: Path, *, goals: int | None = None, speed: float = 3
                 estop_s = asyncio.run(_estop_at(stack, max(estop_at_s, ready_sim_s + BLACKBOX_MINUTE_S + 2.0)))
                 # this e-stop's bag: a loaded machine may have saved an earlier one (a drive fault) before it
                 stack.wait_line(r"black box saved: \S*_estop\b", timeout_s=120.0)
-            time.sleep(1.0)  # the last messages reach the recorder
         finally:
             rec.send_signal(2)
             try:
@@ -181,6 +180,7 @@ async def _drive(sc, stack: Stack) -> tuple[list[dict], float, list[float]]:  # 
         for k, g in enumerate(sc.goals, 1):
             leg_starts_s.append(c.sim_time)
             goals.append(await run_goal(c, sc, 1, k, g, 300.0, None))
+        await c.sim_sleep(1.0)  # a sim second more: the last goal's messages reach the recorder as they reached us
     finally:
         c.close()
     return [{"run": 1, "goals": goals}], ready_sim_s, leg_starts_s
@@ -224,7 +224,7 @@ def replay_into_localization(bag: Path, world_yaml: Path, run_dir: Path, *, rate
         subprocess.run([sys.executable, "-m", "services.cli", "replay", str(bag), "scan", "odom", "--connect",
                         stack.endpoint, "--robot-id", stack.robot_id, "--rate", str(rate), "--quiet"],
                        cwd=REPO_ROOT, env=_env(), check=True, stdin=subprocess.DEVNULL, timeout=3600)
-        time.sleep(1.0)  # the last poses arrive
+        time.sleep(1.0)  # the last poses arrive (none is stamped late: at rest the filter does not update)
         sub.undeclare()
     return poses
 
@@ -274,13 +274,13 @@ def trajectory_rms_per_leg_m(recorded: list[m.Transform2D], replayed: list[m.Tra
 
 def replay_speed_factor(bag: Path) -> float:
     """Bag seconds per wall second of ``zagv replay --rate 0`` (publishing into a router with no subscriber)."""
-    from services.common.ports import free_port
+    from services.common.ports import free_port, wait_listening
 
     port = free_port()
     router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
                               cwd=REPO_ROOT, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(1.0)
+        wait_listening(port, 30.0)
         bag_s = bag_span_s(bag)
         t0 = time.monotonic()
         # topics only: with no service listening, each recorded request would wait out --service-timeout
