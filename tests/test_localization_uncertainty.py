@@ -105,55 +105,15 @@ def test_filter_driven_along_a_featureless_hall_keeps_saying_it_does_not_know_x(
     assert y_std < 0.02, y_std
 
 
-def test_goal_checker_fails_a_goal_localization_cannot_vouch_for_even_after_a_look_around():
+def test_goal_checker_fails_a_goal_localization_cannot_vouch_for():
     nav, sim = make((0.0, 0.0, 0.0))
     nav.loc_position_std_m, nav.loc_weakest_axis_rad = 0.08, 0.0
     ok, gid, _ = nav.start_goal(0.0, (3.0, 0.1, 1.57))
     assert ok
-    drive(nav, sim, 180.0)
+    drive(nav, sim, 120.0)
     assert nav.state == "failed"
     assert "cannot vouch for the position: std 0.080 m along 0 deg" in nav.error, nav.error
-    assert "after 1 look-around(s)" in nav.error, nav.error
     assert [e[:2] for e in nav.take_finished()] == [(gid, "failed")]
-
-
-def test_goal_checker_without_look_arounds_fails_after_the_wait():
-    nav, sim = make((0.0, 0.0, 0.0), look_arounds_on_doubt=0)
-    nav.loc_position_std_m = 0.08
-    ok, _, _ = nav.start_goal(0.0, (3.0, 0.1, 1.57))
-    assert ok
-    drive(nav, sim, 120.0)
-    assert nav.state == "failed" and "look-around" not in nav.error, nav.error
-
-
-def test_goal_checker_looks_around_when_it_cannot_vouch_then_succeeds_on_the_pinned_pose():
-    """Not vouched for after the wait at rest: one full turn in place (a 270 deg scanner sees what was behind it),
-    then the goal is approached and judged again; the turn pins the pose and the goal succeeds."""
-    nav, sim = make((0.0, 0.0, 0.0))
-    nav.loc_position_std_m, nav.loc_weakest_axis_rad = 0.08, 0.0
-    goal = (3.0, 0.1, 1.57)
-    ok, gid, _ = nav.start_goal(0.0, goal)
-    assert ok
-    drive(nav, sim, 120.0, stop_when=lambda: nav.goal is not None and nav.goal.recovery == "look_around")
-    assert nav.state == "recovering"
-    turned = [0.0]
-    last = [float(sim.pose[2])]
-
-    def pinned_once_turned() -> bool:
-        turned[0] += abs(wrap_angle(float(sim.pose[2]) - last[0]))
-        last[0] = float(sim.pose[2])
-        if turned[0] > math.pi:  # the rear view came into the scans half-way round
-            nav.loc_position_std_m = 0.01
-        return False
-    drive(nav, sim, 120.0, stop_when=pinned_once_turned)
-    assert nav.state == "succeeded", nav.error
-    assert turned[0] > 2 * math.pi - 0.1, turned[0]
-    ex, ey, eth = sim.pose - np.asarray(goal)
-    assert math.hypot(ex, ey) < 0.05 and abs(wrap_angle(eth)) < 0.05
-    assert not sim.collided
-    finished = nav.take_finished()
-    assert finished[0][:2] == (gid, "succeeded") and "after 1 look-around(s)" in finished[0][2]
-    assert nav.goal is not None and nav.goal.recovery_log == ["look_around"]
 
 
 def test_goal_checker_waits_for_localization_to_vouch_then_succeeds():

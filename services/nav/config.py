@@ -75,10 +75,6 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     # unpinned one does not), then fails saying so. 0: no such check
     localization_std_factor: float = 2.0
     localization_vouch_wait_s: float = 10.0
-    # when it still cannot vouch after that wait: turn in place by look_around_angle_rad (the scanner's blind sector
-    # sweeps the surroundings) and approach the goal again, at most look_arounds_on_doubt times per goal; 0: fail
-    look_arounds_on_doubt: int = 1
-    look_around_angle_rad: float = 6.283
     # turn in place first when the path leaves behind the robot (LMS111 blind sector)
     rotate_first_angle_rad: float = 0.785
     rotate_done_angle_rad: float = 0.15

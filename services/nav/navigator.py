@@ -17,9 +17,7 @@ Control phases of a goal:
    direction within the xy tolerance (and the same for the heading). Nav2's goal checker compares the estimate
    only; where the scans do not pin a direction (one straight wall in view, a corridor whose ends are out of range)
    the estimate along it is dead reckoning and can be decimetres off while it sits on the goal. Such a goal waits
-   ``localization_vouch_wait_s`` for updates at rest; then the robot looks around (a full turn in place, once per
-   goal: ``look_arounds_on_doubt``), so that what lies in the scanner's blind sector behind it comes into view,
-   and approaches the goal again on the corrected estimate; if localization still cannot vouch, it fails saying why.
+   ``localization_vouch_wait_s`` for updates at rest, then fails saying why.
 Failures (no path, no valid trajectory for ``controller_patience_s``, no progress within the allowance) climb a
 ladder of escapes, each of which changes something: for a failed search clear the costmaps, wait (a person or cart
 may move away), replan with relaxed costs (no clearance preference: a tighter route), spin (look around), back up;
@@ -102,7 +100,6 @@ class GoalState:
     loc_updated_at: float = 0.0
     loc_updates: int = 0
     vouch_wait_since: float | None = None  # when the goal checker began waiting for localization to vouch
-    look_arounds: int = 0  # full turns in place made because localization could not vouch at the goal
     progress_pose: tuple[float, float, float] | None = None
     progress_at: float = 0.0
     stuck_since: float | None = None
@@ -353,8 +350,6 @@ class Navigator:
                      f"{self.loc_heading_std_rad:.4f} rad (particles {self.loc_particle_std_m:.4f} m)")
             if g.vouch_wait_since is not None:
                 error += f", vouched after {now - g.vouch_wait_since:.1f} s of updates at rest"
-            if g.look_arounds:
-                error += f", after {g.look_arounds} look-around(s)"
             self.finished.append((g.id, state, error))
             error = ""
         else:
@@ -668,45 +663,9 @@ class Navigator:
             g.loc_answered = g.loc_updated = False
             self.localization_request = True
             return (0.0, 0.0, 0.0)
-        if (g.look_arounds < self.config.look_arounds_on_doubt and self.config.look_around_angle_rad > 0
-                and self._turn_free(pose)):
-            self._start_look_around(now, pose, doubt)
-            return (0.0, 0.0, 0.0)
-        looked = f" after {g.look_arounds} look-around(s)" if g.look_arounds else ""
-        self._finish("failed", f"reached by the estimate ({dxy:.3f} m off) but {doubt}{looked} "
+        self._finish("failed", f"reached by the estimate ({dxy:.3f} m off) but {doubt} "
                                f"(particles {self.loc_particle_std_m:.4f} m)", now, pose)
         return (0.0, 0.0, 0.0)
-
-    def _turn_free(self, pose: tuple[float, float, float]) -> bool:
-        """Whether turning in place sweeps no obstacle: always for a circular footprint; for a polygon, no lethal
-        cell of the local costmap within its circumscribed circle."""
-        if self.footprint.is_circle:
-            return True
-        r = self.footprint.circumscribed_radius_m
-        radii = np.arange(0.0, r + 0.025, 0.025)[:, None]
-        angles = np.linspace(0.0, 2 * math.pi, 144, endpoint=False)[None, :]
-        xs, ys = pose[0] + radii * np.cos(angles), pose[1] + radii * np.sin(angles)
-        costs = self.local_costmap.master.cost_at(xs.ravel(), ys.ravel(), outside=0)
-        return bool((costs != LETHAL).all())
-
-    def _start_look_around(self, now: float, pose: tuple[float, float, float], doubt: str) -> None:
-        """A full turn in place at the goal (``_turn_free``: it sweeps no obstacle), then the goal is approached
-        and judged afresh: the scans of the turn see what the blind sector hid, which may pin the
-        direction localization could not vouch for. Not a stuck episode: the recovery ladder is left alone."""
-        g = self.goal
-        assert g is not None
-        g.look_arounds += 1
-        g.vouch_wait_since = g.settled_since = None
-        g.loc_updates = 0
-        g.recovery = "look_around"
-        g.recoveries += 1
-        g.recovery_log.append(g.recovery)
-        g.last_error = doubt
-        g.recovery_start = pose
-        g.recovery_at = now
-        g.recovery_turned = 0.0
-        g.recovery_last_theta = pose[2]
-        self.state = "recovering"
 
     def _check_progress(self, now: float, pose: tuple[float, float, float]) -> None:
         g = self.goal
@@ -777,11 +736,10 @@ class Navigator:
         if now - g.recovery_at > self.config.recovery_timeout_s:
             self._end_recovery(now, pose)
             return (0.0, 0.0, 0.0)
-        if g.recovery in ("spin", "look_around"):
+        if g.recovery == "spin":
             g.recovery_turned += abs(float(wrap_angle(pose[2] - g.recovery_last_theta)))
             g.recovery_last_theta = pose[2]
-            angle = self.config.spin_angle_rad if g.recovery == "spin" else self.config.look_around_angle_rad
-            left = angle - g.recovery_turned
+            left = self.config.spin_angle_rad - g.recovery_turned
             if left <= 0.02:
                 self._end_recovery(now, pose)
                 return (0.0, 0.0, 0.0)
