@@ -163,7 +163,7 @@ class Node:
         self._tasks: set[asyncio.Task[Any]] = set()
         if isinstance(self.clock, SimClock):
             sim_clock = self.clock
-            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor))
+            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor), queue=1)
 
     def ready(self, inputs: str = "") -> None:
         """Declare the health token and tell systemd READY=1 (idempotent).

@@ -113,14 +113,16 @@ class DriveService:
         self.rejected_logged = 0.0
         self.loop.publish = self.publish
         node = self.node
+        # latest only (queue=1): a command or clock tick older than the newest is never worth acting on, and a reader
+        # thread that waits for the GIL behind the 1 kHz loop would otherwise work through a backlog of stale ones
         if sim_ticker is not None:
             advance = sim_ticker.advance
-            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True)
+            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True, queue=1)
         if cfg.command_source == "safety/cmd_vel":
-            node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True)
+            node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True, queue=1)
         else:
             log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
-            node.subscribe("cmd_vel", self.on_cmd, on_zenoh_thread=True)
+            node.subscribe("cmd_vel", self.on_cmd, on_zenoh_thread=True, queue=1)
         node.queryable("drive/enable", self.enable)
         node.queryable("drive/disable", self.disable)
         node.queryable("drive/estop", self.estop)
