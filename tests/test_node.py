@@ -15,6 +15,7 @@ from services.common.node import Node
 from services.common.query import NoAnswer, QueryError
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
+from tests.support.stack import free_port
 from tests.support.waiting import wait_for
 
 
@@ -251,3 +252,54 @@ def test_wait_listening_returns_once_a_port_takes_connections_and_names_a_dead_o
     port = free_port()
     with pytest.raises(TimeoutError, match=f"127.0.0.1:{port} within 0.2 s"):
         wait_listening(port, timeout_s=0.2)
+
+
+async def test_a_stuck_subscriber_never_makes_a_peer_publisher_wait() -> None:
+    """Peers (no router between them): the subscribing node's reader is stuck, as one waiting for the GIL is, while
+    2000 messages of 20 kB are published with congestion control BLOCK. The publisher gets through all of them
+    (the subscriber's native ring drops its own oldest samples; Zenoh's thread never waits for the reader), and
+    once the reader turns again it gets the newest. With a queue that blocks when full (zenoh's default behind a
+    Python callback), the puts wait for the stuck process and the link is closed (docs/performance.md)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sub_session = open_session(ZenohSettings(mode="peer", connect=[], listen=[endpoint]))
+    pub_session = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+    try:
+        await wait_for(lambda: list(pub_session.info.peers_zid()), timeout_s=20, message="the peers never met")
+        keys = Keys("t_stuck")
+        node = Node("stuck", sub_session, keys)
+        gate = threading.Event()
+        seen: list[float] = []
+
+        def stuck(msg: LaserScan) -> None:
+            seen.append(msg.stamp)
+            gate.wait()  # the reader thread stays here until released
+
+        node.subscribe("scan", stuck, on_zenoh_thread=True)
+        pub = pub_session.declare_publisher(keys("scan"), congestion_control=zenoh.CongestionControl.BLOCK)
+        await wait_for(lambda: (pub.put(encode(LaserScan(stamp=-1.0))), bool(seen))[1], timeout_s=20,
+                       message="the subscriber never got a message")
+        n = 2000
+        body = b"\0" * 20_000
+        done = threading.Event()
+
+        def publish() -> None:
+            for i in range(n):
+                pub.put(encode(LaserScan(stamp=float(i), ranges=body)))
+            done.set()
+
+        sender = threading.Thread(target=publish, daemon=True)
+        sender.start()
+        try:
+            await wait_for(done.is_set, timeout_s=60, poll_s=0.05,
+                           message="the publisher waited for the stuck subscriber")
+        finally:
+            gate.set()
+        await wait_for(lambda: seen[-1] == n - 1, timeout_s=20, message="the newest message never arrived")
+        key = keys("scan")
+        assert node.received[key] < n  # the ring dropped the stuck reader's oldest samples
+        assert seen == sorted(seen)
+        node.close()
+    finally:
+        gate.set()
+        pub_session.close()
+        sub_session.close()

@@ -1,7 +1,13 @@
 """The asyncio bridge between a service and Zenoh.
 
-Zenoh delivers samples and queries on its own threads; ``Node`` decodes them there and hands typed messages to the
-service's event loop. Every payload is checked against the type its key carries (``proto.registry``); a payload
+Zenoh delivers samples and queries on its own threads. A subscriber's samples go into a native (Rust) queue of its
+own, which Zenoh's thread fills without ever taking the GIL; one reader thread per subscriber blocks in ``recv()``
+with the GIL released, decodes each sample and hands the typed message to the service's event loop. The queue is a
+ring (the oldest sample goes when it is full), so a process that cannot keep up, for instance because its reader
+waits for the GIL, loses its own oldest samples and never makes a publisher wait (docs/performance.md, "Zenoh data
+path": as peers, a publisher's ``put`` waits for a subscribing process whose queue blocks).
+
+Every payload is checked against the type its key carries (``proto.registry``); a payload
 that does not decode is logged (rate-limited), counted in ``bad_payloads`` and dropped, and the service keeps
 running. Latched topics (``map``, ``pose``, ``nav/status``, ...) are served to late joiners by a queryable on the
 same key, which latched subscribers query whenever such a queryable appears (``LatchedFetch``).
@@ -14,6 +20,7 @@ import collections
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, TypeVar, cast
@@ -31,6 +38,37 @@ from services.common.query import query
 
 T = TypeVar("T", bound=Message)
 log = logging.getLogger("zagv.node")
+
+#: samples a subscriber's native ring holds while its reader thread is away: a reader that waits for the GIL takes
+#: one sample per switch interval (5 ms) from a busy process, so about 5 s of a 200 Hz topic. (zenoh's own queue
+#: behind a Python callback is a 256-deep FIFO that blocks Zenoh's thread, and through it the publisher, when full)
+SUBSCRIBER_QUEUE = 1024
+#: the native queue of a keep-every-message subscription (``maxlen=None``): a FIFO, which makes the publisher wait
+#: rather than lose a message once this many are unread (a process stalled that long is about to be restarted)
+KEEP_ALL_QUEUE = 4096
+
+
+def _pump(handler: Any, on_item: Callable[[Any], None], what: str) -> None:
+    """A reader thread: take items from a native Zenoh queue (``recv`` releases the GIL while it waits) until
+    its declaration is undeclared or its session closed."""
+    for item in handler:
+        try:
+            on_item(item)
+        except Exception:  # the reader must outlive a bad sample
+            log.exception("reader of %s failed", what)
+
+
+def declare_reader(session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None],
+                   queue: int | None = SUBSCRIBER_QUEUE) -> zenoh.Subscriber[Any]:
+    """A subscriber on ``key`` whose samples wait in a native queue (a ring of ``queue`` samples; ``None``: a FIFO
+    of ``KEEP_ALL_QUEUE``) and reach ``on_sample`` on a reader thread of their own, never on Zenoh's thread."""
+    handler: Any = zenoh.handlers.FifoChannel(KEEP_ALL_QUEUE) if queue is None else \
+        zenoh.handlers.RingChannel(max(1, queue))
+    sub = session.declare_subscriber(key, handler)
+    # the thread holds the handler only, not the subscriber: undeclaring (or dropping) the subscriber ends it
+    threading.Thread(target=_pump, args=(sub.handler, on_sample, key), name=f"zagv-sub {key}",
+                     daemon=True).start()
+    return sub
 
 
 class TopicPublisher:
@@ -111,7 +149,8 @@ class Node:
         self.loop = asyncio.get_running_loop()
         self.log = logging.getLogger(f"zagv.{name}")
         self.bad_payloads: collections.Counter[str] = collections.Counter()
-        # per key: samples Zenoh handed over (its thread) and messages the loop delivered (the bridge's two ends)
+        # per key: samples the reader threads took from the native queues and messages the loop delivered (the
+        # bridge's two ends)
         self.received: collections.Counter[str] = collections.Counter()
         self.delivered: collections.Counter[str] = collections.Counter()
         self._bad_logged_at: dict[str, float] = {}
@@ -124,7 +163,7 @@ class Node:
         self._tasks: set[asyncio.Task[Any]] = set()
         if isinstance(self.clock, SimClock):
             sim_clock = self.clock
-            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor))
+            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor), queue=1)
 
     def ready(self, inputs: str = "") -> None:
         """Declare the health token and tell systemd READY=1 (idempotent).
@@ -212,12 +251,15 @@ class Node:
         msg_type: type[T] | None = None,
         latched: bool = False,
         on_zenoh_thread: bool = False,
+        queue: int | None = SUBSCRIBER_QUEUE,
     ) -> None:
         """Call ``callback(msg)`` for each valid message on ``name``.
 
-        The callback runs on the event loop, or directly on Zenoh's thread when ``on_zenoh_thread`` (for
-        latency-critical consumers that do their own locking). A coroutine function is scheduled as a task.
-        With ``latched``, the last message held by a latched publisher is fetched once at declaration.
+        The callback runs on the event loop, or directly on the subscriber's reader thread when ``on_zenoh_thread``
+        (for latency-critical consumers that do their own locking; never on Zenoh's own thread). A coroutine
+        function is scheduled as a task. With ``latched``, the last message held by a latched publisher is fetched
+        once at declaration. ``queue``: the native ring's depth (the oldest sample goes when the reader is that far
+        behind); ``None`` keeps every sample (module docstring).
         """
         decode = self._decoder(name, msg_type)
         is_coro = asyncio.iscoroutinefunction(callback)
@@ -247,7 +289,7 @@ class Node:
             else:
                 self.loop.call_soon_threadsafe(deliver, msg)
 
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        self._declared.append(declare_reader(self.session, key, on_sample, queue))
         if latched:
             self._declared.append(LatchedFetch(self.session, key, on_sample))
 
@@ -262,6 +304,7 @@ class Node:
             queue.append(msg)
             ready.set()
 
+        kwargs.setdefault("queue", maxlen)  # latest only from the native queue on: nothing older is ever delivered
         self.subscribe(name, push, **kwargs)
 
         async def iterate() -> AsyncIterator[Any]:

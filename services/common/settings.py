@@ -11,12 +11,13 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
     """How a process joins the robot's Zenoh network ([zenoh] table).
 
     Multicast scouting is always off: sessions connect to the explicit ``connect`` endpoints only.
-    ``config_file`` (json5) is applied first, then these keys. ``client`` (the default): everything through the
-    router; ``peer`` (rmw_zenoh's data path, opt-in): the router serves discovery and remote clients, data goes
-    directly between the processes of one host.
+    ``config_file`` (json5) is applied first, then these keys. ``peer`` (the default, rmw_zenoh's data path): the
+    router serves discovery and remote clients, data goes directly between the processes of one host; ``client``
+    (the way back, ``mode = "client"`` or ``--set zenoh.mode="client"``): everything through the router.
+    Command-line tools are clients whatever this says (``services.client.connect``).
     """
 
-    mode: Literal["client", "peer", "router"] = "client"
+    mode: Literal["client", "peer", "router"] = "peer"
     connect: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     listen: list[str] = msgspec.field(default_factory=list)
     config_file: str = ""

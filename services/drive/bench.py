@@ -104,7 +104,7 @@ class _RpdoWatch:
         self.proc = _spawn("services.drive.bench", "watch", channel, str(out), str(cob_id))
         self.frames: list[tuple[float, int]] = []
 
-    def wait_ready(self, timeout_s: float = 10.0) -> None:
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s
         while not (self.out.exists() and self.out.stat().st_size > 0):
             if time.monotonic() > deadline:

@@ -34,6 +34,8 @@ from services.drive.imu import ImuSample, RazorReader
 from services.drive.kinematics import SwerveKinematics
 from services.drive.loop import DriveLoop, LoopSettings, SimTicker, Snapshot, WallTicker
 
+#: the native ring of the drive's cmd_vel and clock subscribers (services.common.node)
+CONTROL_QUEUE = 4
 log = logging.getLogger("zagv.drive")
 
 #: odometry covariances (x, y, theta), diagonal: wheel odometry is good over short steps, drifts over distance
@@ -113,14 +115,17 @@ class DriveService:
         self.rejected_logged = 0.0
         self.loop.publish = self.publish
         node = self.node
+        # nearly latest only (CONTROL_QUEUE): a command or clock tick older than the newest is not worth acting on,
+        # and a reader thread that waits for the GIL behind the 1 kHz loop would otherwise work through a backlog of
+        # stale ones; a few are kept so that a burst (a bad payload, then a good one) is still seen whole
         if sim_ticker is not None:
             advance = sim_ticker.advance
-            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True)
+            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True, queue=CONTROL_QUEUE)
         if cfg.command_source == "safety/cmd_vel":
-            node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True)
+            node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True, queue=CONTROL_QUEUE)
         else:
             log.warning("taking cmd_vel directly: no collision monitor between the commands and the wheels")
-            node.subscribe("cmd_vel", self.on_cmd, on_zenoh_thread=True)
+            node.subscribe("cmd_vel", self.on_cmd, on_zenoh_thread=True, queue=CONTROL_QUEUE)
         node.queryable("drive/enable", self.enable)
         node.queryable("drive/disable", self.disable)
         node.queryable("drive/estop", self.estop)

@@ -4,10 +4,11 @@ Three processes on loopback: a router (``zagv router``), an echo process (``pyth
 echo``) and the measuring process, in each topology:
 
 - ``zenoh.*`` (what ``zagv up`` runs): the router with the settings ``zagv up`` embeds, both ends with the services'
-  default settings (clients: every message through the router);
+  default settings (peers: discovery through the router, data directly);
 - ``zenoh.systemd.*``: the router with ``deploy/zenoh/router-loopback.json5`` and both ends with the ``[zenoh]`` table
   of ``deploy/robot.example.toml``, as the systemd units run them;
-- ``zenoh.peer.*``: both ends peers (``[zenoh] mode = "peer"``): discovery through the router, data directly.
+- ``zenoh.routed.*``: both ends clients (``[zenoh] mode = "client"``, the way back): every message through the
+  router.
 
 Latency: a 64 B (or 10 kB) message goes ping -> echo -> ping; each reply is handled, and the next ping sent,
 directly on Zenoh's network thread (``Callback(indirect=False)``), so no Python thread wake-up sits on the path.
@@ -47,13 +48,13 @@ def topology(name: str, endpoint: str) -> tuple[list[str], ZenohSettings]:
     """(extra ``zagv router`` arguments, the two ends' settings) of a topology (module docstring)."""
     if name == "up":
         return [], ZenohSettings(connect=[endpoint])
-    if name == "peer":
-        return [], ZenohSettings(mode="peer", connect=[endpoint])
+    if name == "routed":
+        return [], ZenohSettings(mode="client", connect=[endpoint])
     if name == "systemd":
         table = tomllib.loads((DEPLOY / "robot.example.toml").read_text())["zenoh"]
         settings = msgspec.convert({**table, "connect": [endpoint]}, ZenohSettings)
         return ["--config", str(DEPLOY / "zenoh" / "router-loopback.json5")], settings
-    raise ValueError(f"unknown topology {name!r} (up, peer, systemd)")
+    raise ValueError(f"unknown topology {name!r} (up, routed, systemd)")
 
 
 def echo_main(settings_json: str) -> None:
@@ -183,7 +184,7 @@ def scan_throughput(session: zenoh.Session, duration_s: float = 2.0) -> float:
 
 def bench_zenoh() -> list[BenchRow]:
     rows = []
-    for name, prefix in (("up", "zenoh"), ("systemd", "zenoh.systemd"), ("peer", "zenoh.peer")):
+    for name, prefix in (("up", "zenoh"), ("systemd", "zenoh.systemd"), ("routed", "zenoh.routed")):
         with _Peers(name) as peers:
             small = round_trips(peers.session, 64, 5000)
             large = round_trips(peers.session, 10_000, 2000)
