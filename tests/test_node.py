@@ -245,10 +245,9 @@ def test_wait_listening_returns_once_a_port_takes_connections_and_names_a_dead_o
 
     from services.common.ports import free_port, wait_listening
 
-    with socket.socket() as server:
-        server.bind(("127.0.0.1", 0))
-        server.listen()
-        wait_listening(server.getsockname()[1], timeout_s=5.0)
+    listening = free_port()
+    with socket.create_server(("127.0.0.1", listening)):
+        wait_listening(listening, timeout_s=5.0)
     port = free_port()
     with pytest.raises(TimeoutError, match=f"127.0.0.1:{port} within 0.2 s"):
         wait_listening(port, timeout_s=0.2)
