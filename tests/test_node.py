@@ -302,12 +302,3 @@ async def test_a_stuck_subscriber_never_makes_a_peer_publisher_wait() -> None:
         gate.set()
         pub_session.close()
         sub_session.close()
-
-
-def test_free_port_lies_below_the_kernels_ephemeral_range() -> None:
-    """A port handed out for a later bind is never one a Zenoh peer's port-0 listener can be given meanwhile."""
-    from services.common.ports import _ephemeral_range, free_port
-
-    low, _ = _ephemeral_range()
-    ports = {free_port() for _ in range(20)}
-    assert all(1024 <= p < low for p in ports), ports
