@@ -20,8 +20,9 @@ Suite TOML::
 
 ``cell_m`` re-rasters the map onto a coarser cell before the run: the whole multiple of the map's cell nearest to it
 (``services.common.map_io.coarsen``: a block is occupied when any of its cells is, free when mostly free), written
-into the run folder: the same building as a
-mapper with a coarser cell would have drawn it, for the sim world, localization and nav alike.
+into the run folder: the same building as a mapper with a coarser cell would have drawn it, for the sim world,
+localization and nav alike.
+
 A map whose YAML is missing is skipped (named in the output); a map on which no goal is reachable for the footprint
 (too narrow for the robot) gets a row saying so and no goals.
 """
