@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 from pathlib import Path
 
+import msgspec
 import pytest
 import zenoh
 
-from services.common.session import PEER_LISTEN_DEFAULT, open_session, shm_usable, zenoh_config
+from services.common.session import PEER_LISTEN_DEFAULT, make_socket_dir, open_session, shm_usable, zenoh_config
 from services.common.settings import ZenohSettings
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
@@ -44,20 +46,39 @@ def test_shared_memory_falls_back_where_dev_shm_is_not_writable(tmp_path: Path, 
     assert json.loads(conf.get_json("transport/shared_memory/enabled")) is False
 
 
+def test_a_peer_socket_folder_gives_each_session_a_unix_socket_of_its_own(tmp_path: Path) -> None:
+    settings = ZenohSettings(mode="peer", connect=["tcp/127.0.0.1:7447"], peer_socket_dir=str(tmp_path))
+    first, second = (json.loads(zenoh_config(settings).get_json("listen/endpoints")) for _ in range(2))
+    assert first[0].startswith(f"unixsock-stream/{tmp_path}/") and first[0].endswith(".sock")
+    assert first != second  # a restarted service never meets the socket file its predecessor left
+    with pytest.raises(ValueError, match="longer than the 107 bytes"):
+        zenoh_config(msgspec.structs.replace(settings, peer_socket_dir=str(tmp_path / ("x" * 100))))
+
+
 @pytest.mark.integration
-@pytest.mark.parametrize("router_config", [None, "deploy/zenoh/router-loopback.json5"])
-def test_peers_exchange_data_directly_and_keep_going_without_the_router(router_config: str | None) -> None:
+@pytest.mark.parametrize(("transport", "router_config"), [("tcp", None), ("tcp", "deploy/zenoh/router-loopback.json5"),
+                                                          ("unix", None)])
+def test_peers_exchange_data_directly_and_keep_going_without_the_router(transport: str, router_config: str | None,
+                                                                        ) -> None:
+    """``tcp``: peers as the systemd units run them; ``unix``: as ``zagv up`` runs them (the router's and each
+    peer's unix socket in one folder)."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
+    socket_dir = make_socket_dir()
+    router_socket = f"unixsock-stream/{socket_dir}/router.sock"
     args = [sys.executable, "-m", "services.cli", "router", "--listen", endpoint]
+    if transport == "unix":
+        args += ["--listen", router_socket]
     if router_config:
         args += ["--config", str(REPO_ROOT / router_config)]
     router = subprocess.Popen(args, cwd=REPO_ROOT, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL, start_new_session=True)
+    peer = ZenohSettings(mode="peer", connect=[endpoint]) if transport == "tcp" else \
+        ZenohSettings(mode="peer", connect=[router_socket], peer_socket_dir=socket_dir)
     sessions: list[zenoh.Session] = []
     try:
-        a = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
-        b = open_session(ZenohSettings(mode="peer", connect=[endpoint]))
+        a = open_session(peer)
+        b = open_session(peer)
         sessions += [a, b]
         wait_for_sync(lambda: str(b.info.zid()) in {str(z) for z in a.info.peers_zid()}, timeout_s=20,
                       message="the two peers never connected to each other")
@@ -83,9 +104,13 @@ def test_peers_exchange_data_directly_and_keep_going_without_the_router(router_c
         router.wait(10)
         wait_for_sync(lambda: arrived(b"after the router died"), timeout_s=20, poll_s=0.1,
                       message="data stopped with the router: it was not peer-to-peer")
+        if transport == "unix":
+            # the peers' own sockets: the data path took no TCP port
+            assert len(list(Path(socket_dir).glob("*-*.sock"))) == 2
     finally:
         for s in sessions:
             s.close()
         if router.poll() is None:
             os.killpg(router.pid, signal.SIGKILL)
             router.wait()
+        shutil.rmtree(socket_dir, ignore_errors=True)

@@ -10,6 +10,7 @@ import asyncio
 import heapq
 import itertools
 import logging
+import math
 import time
 from typing import Protocol
 
@@ -68,6 +69,10 @@ class SimClock:
         self._waiters: list[tuple[float, int, asyncio.Future[None]]] = []
         self._seq = itertools.count()
         self._started = asyncio.Event()
+        # the earliest sleeper's target: written on the loop thread, read by ``advance_threadsafe``
+        self._due_s = math.inf
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self.loop_wakeups = 0  # clock messages that had to wake the loop (``advance_threadsafe``)
 
     def now(self) -> float:
         return self._now
@@ -94,11 +99,50 @@ class SimClock:
             self._waiters = [(target + shift_s, seq, fut) for target, seq, fut in self._waiters]
             heapq.heapify(self._waiters)
         self._now = t
+        self._wake_due()
+
+    def bind(self, loop: asyncio.AbstractEventLoop) -> None:
+        """The event loop ``advance_threadsafe`` wakes."""
+        self._loop = loop
+
+    def advance_threadsafe(self, t: float, speed_factor: float | None = None) -> None:
+        """``advance`` from the clock's reader thread: the new time is taken at once, and the loop is woken only
+        when a sleeper is due (t >= its target), on the first message and when the clock jumps back.
+
+        A 100 Hz clock thus costs a service one loop wake-up per due sleeper instead of one per message. Under the
+        GIL the two sides are ordered: this writes ``_now`` before reading ``_due_s``, and ``sleep_until`` writes
+        ``_due_s`` before reading ``_now`` again, so a sleeper added while the clock passes its target is woken
+        by one side or the other."""
+        loop = self._loop
+        if loop is None:
+            raise RuntimeError("SimClock.advance_threadsafe before bind(loop)")
+        if t < self._now:
+            if t >= self._now - 1.0:
+                return  # an older stamp (``advance`` ignores it too)
+            loop.call_soon_threadsafe(self.advance, t, speed_factor)  # the simulator restarted: on the loop
+            self.loop_wakeups += 1
+            return
+        if not self._started.is_set():
+            loop.call_soon_threadsafe(self.advance, t, speed_factor)  # the first tick sets ``started`` on the loop
+            self.loop_wakeups += 1
+            return
+        if speed_factor is not None:
+            self.speed_factor = speed_factor
+        self._now = t
+        if t >= self._due_s:
+            self._due_s = math.inf  # one wake-up per due sleeper; _wake_due sets the next target
+            loop.call_soon_threadsafe(self._wake_due)
+            self.loop_wakeups += 1
+
+    def _wake_due(self) -> None:
+        """Set the started flag and resolve every sleeper whose target has come (loop thread)."""
         self._started.set()
-        while self._waiters and self._waiters[0][0] <= t:
+        now = self._now
+        while self._waiters and self._waiters[0][0] <= now:
             _, _, fut = heapq.heappop(self._waiters)
             if not fut.done():
                 fut.set_result(None)
+        self._due_s = self._waiters[0][0] if self._waiters else math.inf
 
     async def sleep_until(self, t: float) -> None:
         if t <= self._now and self.started:
@@ -106,6 +150,9 @@ class SimClock:
             return
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         heapq.heappush(self._waiters, (t, next(self._seq), fut))
+        self._due_s = self._waiters[0][0]
+        if t <= self._now and self.started:  # the reader thread advanced past t meanwhile (advance_threadsafe)
+            self._wake_due()
         await fut
 
     async def sleep(self, dt: float) -> None:

@@ -161,9 +161,21 @@ class Node:
         self._stats = session.declare_queryable(keys(f"@stats/{name}"), self._serve_stats)
         self.extra_stats: dict[str, Any] = {}
         self._tasks: set[asyncio.Task[Any]] = set()
+        #: called on the clock's reader thread with each sim time stamp in s (a service's own thread-side ticker
+        #: rides on the node's one clock subscription instead of declaring a second one)
+        self.clock_listeners: list[Callable[[float], None]] = []
         if isinstance(self.clock, SimClock):
             sim_clock = self.clock
-            self.subscribe("clock", lambda c: sim_clock.advance(c.stamp, c.speed_factor), queue=1)
+            sim_clock.bind(self.loop)
+            listeners = self.clock_listeners
+
+            def on_clock(c: Any) -> None:
+                sim_clock.advance_threadsafe(c.stamp, c.speed_factor)
+                for listener in listeners:
+                    listener(c.stamp)
+
+            # on the reader thread: the loop is woken only when a sleeper is due (SimClock.advance_threadsafe)
+            self.subscribe("clock", on_clock, on_zenoh_thread=True, queue=1)
 
     def ready(self, inputs: str = "") -> None:
         """Declare the health token and tell systemd READY=1 (idempotent).

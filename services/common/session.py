@@ -1,9 +1,11 @@
 """Zenoh session factory: router, peer or client on explicit endpoints, multicast scouting off.
 
 The data path is rmw_zenoh's: services are peers that connect to the router and listen on an ephemeral loopback
-port (``tcp/127.0.0.1:0``); the router tells each peer, by gossip over the links it already has (never multicast),
-where the others listen, and the peers then exchange data directly (one socket hop instead of two, no router
-process in between). The router stays the rendezvous for discovery, for clients (command-line tools, remote hosts
+port (``tcp/127.0.0.1:0``), or under ``zagv up`` on a unix socket of their own (``peer_socket_dir``: no TCP port
+for the kernel to hand out, so none that a port chosen for the HMI or the simulator's sockets could lose to a
+peer's listener or outgoing link); the router tells each peer, by gossip over the links it already has (never
+multicast), where the others listen, and the peers then exchange data directly (one socket hop instead of two, no
+router process in between). The router stays the rendezvous for discovery, for clients (command-line tools, remote hosts
 over TLS, which its access control governs) and for liveliness. A router config must therefore keep gossip on
 (deploy/zenoh/*.json5); with it off, peers would not find each other.
 
@@ -20,6 +22,8 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
+import tempfile
 
 import zenoh
 
@@ -27,6 +31,8 @@ from services.common.settings import ZenohSettings
 
 #: where a peer listens when its settings name no endpoint: loopback, a port the kernel picks
 PEER_LISTEN_DEFAULT = "tcp/127.0.0.1:0"
+#: sun_path of struct sockaddr_un holds 108 bytes with the terminating NUL
+UNIX_PATH_MAX = 107
 SHM_DIR = "/dev/shm"
 SHM_POOL_KEY = "transport/shared_memory/transport_optimization/pool_size"
 #: each process's zenoh SHM pool: room for several corridor-sized maps or costmaps (a 640 x 350 grid is 224 kB) in
@@ -47,6 +53,27 @@ def shm_usable(path: str) -> bool:
     return os.path.isdir(path) and os.access(path, os.W_OK | os.X_OK)
 
 
+def peer_socket(folder: str) -> str:
+    """A unix-socket endpoint of this process in ``folder``: ``unixsock-stream/<folder>/<pid>-<random>.sock``.
+
+    The name is new for every session (a restarted service never meets its predecessor's file); zenoh removes the
+    socket when the session closes, the folder's owner (``zagv up``) removes what a killed process left."""
+    path = os.path.join(os.path.abspath(folder), f"{os.getpid()}-{secrets.token_hex(4)}.sock")
+    if len(path.encode()) > UNIX_PATH_MAX:
+        raise ValueError(f"zenoh.peer_socket_dir {folder!r}: a socket path there ({len(path.encode())} bytes) is "
+                         f"longer than the {UNIX_PATH_MAX} bytes a unix socket address holds")
+    return f"unixsock-stream/{path}"
+
+
+def make_socket_dir() -> str:
+    """A new private folder (mode 0700) for a stack's unix sockets, short enough for a socket path
+    (``UNIX_PATH_MAX``): under $TMPDIR, or /tmp when $TMPDIR is a long path. Its maker removes it."""
+    base = tempfile.gettempdir()
+    if len(base) > 48:
+        base = "/tmp"
+    return tempfile.mkdtemp(prefix="zagv-z", dir=base)
+
+
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
     """A zenoh.Config for ``settings``; scouting by UDP multicast is disabled in every mode."""
     conf = zenoh.Config.from_file(settings.config_file) if settings.config_file else zenoh.Config()
@@ -62,7 +89,8 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
     elif settings.mode == "peer":
         # reachable by the other peers of this host only, never on another interface
-        conf.insert_json5("listen/endpoints", json.dumps([PEER_LISTEN_DEFAULT]))
+        listen = peer_socket(settings.peer_socket_dir) if settings.peer_socket_dir else PEER_LISTEN_DEFAULT
+        conf.insert_json5("listen/endpoints", json.dumps([listen]))
     elif settings.mode == "router":
         # a router listens only where told to; never on every interface by default
         conf.insert_json5("listen/endpoints", json.dumps([]))

@@ -118,9 +118,8 @@ class DriveService:
         # nearly latest only (CONTROL_QUEUE): a command or clock tick older than the newest is not worth acting on,
         # and a reader thread that waits for the GIL behind the 1 kHz loop would otherwise work through a backlog of
         # stale ones; a few are kept so that a burst (a bad payload, then a good one) is still seen whole
-        if sim_ticker is not None:
-            advance = sim_ticker.advance
-            node.subscribe("clock", lambda c: advance(c.stamp), on_zenoh_thread=True, queue=CONTROL_QUEUE)
+        if sim_ticker is not None:  # the loop's ticker rides on the node's clock subscription (reader thread)
+            node.clock_listeners.append(sim_ticker.advance)
         if cfg.command_source == "safety/cmd_vel":
             node.subscribe("safety/cmd_vel", self.on_cmd, on_zenoh_thread=True, queue=CONTROL_QUEUE)
         else:
