@@ -156,3 +156,29 @@ def test_the_answer_to_an_update_moves_the_pose_before_the_navigator_hears_of_it
     cycle.on_tf(m.Transform2D(stamp=1.5, y=0.08))  # a later update
     cycle.on_localization_answer(1.6, update_answer(0.9, 0.07, 3.07))  # a stale answer (a second request)
     assert tracker.current() == pytest.approx((2.0, 3.08, 0.0))
+
+
+def test_periodic_status_and_costmaps_carry_on_after_the_clock_restarts() -> None:
+    """A simulator restart sets sim time back to 0: the status, costmap and replan schedules re-anchor at once
+    instead of waiting until the new run's clock catches up with the old one."""
+    cfg = NavConfig()
+    nav, tracker = free_room(), tracked(0.0)
+    cycle = NavCycle(cfg, nav, tracker, 0.0)
+    t = 0.0
+    while t < 20.0:
+        cycle.tick(t, planner_idle=True)
+        t += 0.05
+    for restarted_at in (0.01, 0.06):
+        assert cycle.tick(restarted_at, planner_idle=True).publish_status_now or restarted_at > 0.01
+    publishes = sum(cycle.tick(0.1 + 0.05 * k, planner_idle=True).publish_status_now for k in range(40))
+    assert publishes >= 2 * cfg.status_frequency_hz - 1, f"{publishes} status messages in the 2 s after a restart"
+
+
+def test_a_replan_is_due_again_after_the_clock_restarts() -> None:
+    nav = free_room()
+    ok, _, _ = nav.start_goal(30.0, (6.0, 3.0, 0.0), "g1")
+    assert ok and nav.goal is not None
+    nav.goal.plan_now = False
+    nav.goal.last_plan_at = 30.0
+    assert not nav.plan_due(30.1)
+    assert nav.plan_due(0.2), "no replan until the new run's clock reaches the old run's 30 s"

@@ -26,6 +26,13 @@ def is_fresh(stamp_s: float, now_s: float, max_age_s: float) -> bool:
     return abs(now_s - stamp_s) <= max_age_s
 
 
+def due(now_s: float, next_s: float, period_s: float) -> bool:
+    """Whether a periodic action scheduled for ``next_s`` is due at ``now_s``: its time has come, or ``next_s`` lies
+    more than one ``period_s`` ahead of now (the clock restarted: a schedule left from the old run would otherwise
+    wait until the new run's clock caught up with it)."""
+    return now_s >= next_s or next_s - now_s > period_s
+
+
 class Clock(Protocol):
     """What services read time through: ``now()`` in s, sleeps, and whether it is the simulator's clock."""
 

@@ -29,7 +29,9 @@ class LidarConfig(msgspec.Struct, forbid_unknown_fields=True):
     #: wait at most this long (s) for STlms to report "ready for measurement" (7)
     ready_timeout_s: float = 35.0
     reconnect_min_s: float = 0.2
-    reconnect_max_s: float = 2.0
+    #: the backoff's cap: a scanner that comes back (a power cycle, a restarted simulator) streams again within
+    #: about this long; a refused connect costs nothing, so retrying each second is cheap
+    reconnect_max_s: float = 1.0
     #: SetAccessMode level (3 authorized client, 4 service) and the password's hash ("client" = F4724744)
     login_level: int = 3
     login_password_hash: str = "F4724744"

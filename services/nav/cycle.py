@@ -23,6 +23,7 @@ from typing import cast
 import numpy as np
 
 from proto import messages as m
+from services.common.clock import due
 from services.nav.config import NavConfig
 from services.nav.navigator import TERMINAL, Navigator, PlanRequest
 from services.nav.pose_tracker import PoseTracker
@@ -136,7 +137,7 @@ class NavCycle:
             if nav.localization_request:
                 nav.localization_request = False
                 out.request_localization = True
-            if now >= self.next_local_pub:
+            if due(now, self.next_local_pub, LOCAL_PLAN_PERIOD_S):
                 out.local_plan = nav.local_plan
                 self.next_local_pub = now + LOCAL_PLAN_PERIOD_S
             self.was_active = True
@@ -146,20 +147,21 @@ class NavCycle:
             self.was_active = False
         for gid, state, err in nav.take_finished():
             out.log.append((logging.INFO, f"goal {gid} {state}{f': {err}' if err else ''}"))
-        out.publish_status_now = now >= self.next_status
+        out.publish_status_now = due(now, self.next_status, 1.0 / cfg.status_frequency_hz)
         if out.publish_status_now:
             self.next_status = now + 1.0 / cfg.status_frequency_hz
         return out
 
     def _update_costmaps(self, now: float, pose: tuple[float, float, float], out: CycleOutput) -> None:
         nav, cfg = self.nav, self.cfg
-        if now >= self.next_local:
+        if due(now, self.next_local, 1.0 / cfg.local_costmap.update_frequency_hz):
             nav.update_costmaps(pose, "local")
             self.next_local = now + 1.0 / cfg.local_costmap.update_frequency_hz
-        if now >= self.next_global:
+        if due(now, self.next_global, 1.0 / cfg.global_costmap.update_frequency_hz):
             nav.update_costmaps(pose, "global")
             self.next_global = now + 1.0 / cfg.global_costmap.update_frequency_hz
-        if now >= self.next_costmap_pub and cfg.global_costmap.publish_frequency_hz > 0:
+        if cfg.global_costmap.publish_frequency_hz > 0 and \
+                due(now, self.next_costmap_pub, 1.0 / cfg.global_costmap.publish_frequency_hz):
             out.publish_costmap = True
             self.next_costmap_pub = now + 1.0 / cfg.global_costmap.publish_frequency_hz
 

@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from services.common.clock import due
 from services.common.robot import RobotSpec
 from services.common.se2 import wrap_angle
 from services.nav.astar import AStarPlanner, PlanResult, cells_to_path, planning_cost, smooth_cells
@@ -390,7 +391,7 @@ class Navigator:
             return False
         duty = min(max(self.config.planner_max_duty, 1e-3), 1.0)
         period = max(1.0 / self.config.planner_frequency_hz, g.last_plan_duration_s * (1.0 - duty) / duty)
-        return g.plan_now or now - g.last_plan_at >= period
+        return g.plan_now or due(now, g.last_plan_at + period, period)
 
     def make_request(self, pose: tuple[float, float, float], now: float | None = None) -> PlanRequest:
         """Snapshot what the search needs (called on the loop thread; the search may run elsewhere)."""
