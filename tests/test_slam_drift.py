@@ -119,3 +119,21 @@ def test_an_accepted_closure_anchors_the_uncertainty():
     loop_covariance = np.linalg.inv(slam._loop_info)
     assert np.trace(slam.drift_covariance) < np.trace(grown)
     assert np.trace(slam.drift_covariance) > np.trace(loop_covariance)  # two edges propagated on top
+
+
+def test_a_loop_grid_built_before_the_path_passed_its_centre_is_rebuilt():
+    """The loop grid of a keyframe first searched while the path had not gone past it lacks its later neighbours;
+    reusing it for a revisit would match against half the place (edmonton: a widened search's early look-ups
+    cost a closure pair of the real revisit and 8 of 26 closures)."""
+    scan = _scanner(ROOM)
+    slam = GraphSlam()
+    for k in range(40):
+        pose = np.array([-2.5 + 0.13 * k, -0.5 + 0.02 * k, 0.0])
+        slam.add_scan(float(k), pose, scan(pose))
+    n = slam.n_keyframes
+    assert n >= 8
+    half = slam._loop_grid(2, 2)
+    assert slam._loop_grid(2, 2) is half  # same keyframes: cached
+    full = slam._loop_grid(2, n - 1)
+    assert full is not half
+    assert slam._loop_grid(2, n - 1) is full

@@ -234,7 +234,7 @@ class GraphSlam:
         self._last_odom: np.ndarray | None = None
         self._submap: MultiResolutionGrid | None = None
         self._submap_views: ViewProfiles | None = None
-        self._loop_grids: dict[int, MultiResolutionGrid] = {}
+        self._loop_grids: dict[int, tuple[int, MultiResolutionGrid]] = {}  # centre: (newest keyframe in it, grid)
         self._loops_since_optimize = 0
         self._correction_since_optimize = 0.0
         self._last_loop_keyframe = -(10**9)
@@ -536,19 +536,24 @@ class GraphSlam:
 
     # ----------------------------------------------------------------------------------------- loop closure
     def _loop_grid(self, center: int, newest_allowed: int) -> MultiResolutionGrid:
-        grid = self._loop_grids.get(center)
-        if grid is not None:
-            return grid
+        """Keyframe ``center``'s neighbourhood (keyframes center ± ``loop_neighbour_keyframes``, none newer than
+        ``newest_allowed``) in its frame. A cached grid is reused only when it holds the same keyframes: one built
+        while the path had not yet gone past ``center`` lacks the keyframes after it, and a revisit matched against
+        that half neighbourhood misses closures it would have found."""
         c = self.config
+        hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
+        cached = self._loop_grids.get(center)
+        if cached is not None and cached[0] == hi:
+            return cached[1]
+        self._loop_grids.pop(center, None)
         poses = self.graph.poses()
         lo = max(0, center - c.loop_neighbour_keyframes)
-        hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
         clouds = [transform_points(between(poses[center], poses[m]), self._keyframes[m].points)
                   for m in range(lo, hi + 1)]
         grid = MultiResolutionGrid.from_points(np.concatenate(clouds), c.resolution_m, c.levels)
         if len(self._loop_grids) >= c.loop_grid_cache_size:
             self._loop_grids.pop(next(iter(self._loop_grids)))
-        self._loop_grids[center] = grid
+        self._loop_grids[center] = (hi, grid)
         return grid
 
     def _search_loop(self, k: int) -> None:
