@@ -11,7 +11,7 @@ import pytest
 from services.common.se2 import between, compose
 from services.localization.slam.mapper import GraphSlam, LoopClosure, SlamConfig
 from services.localization.slam.odometry_calibration import OdometryCalibration
-from services.localization.slam.search_gate import position_sigma_m, propagate, scaled
+from services.localization.slam.search_gate import position_sigma_m, propagate, relative_sigmas, scaled
 from tests.test_slam_constraint import ROOM, _scanner
 
 
@@ -99,6 +99,38 @@ def test_uncertainty_grows_along_a_path_and_widens_the_search_gate():
     assert scaled(4.0, 3.0, 100.0, 12.0) == 12.0 and scaled(4.0, 3.0, 0.0, 12.0) == 4.0
 
 
+def test_the_gate_uses_the_uncertainty_relative_to_the_candidate():
+    """Σ_jk = Σ_k − A_jk Σ_j A_jkᵀ on one chain: a keyframe j driven just before k is only as uncertain relative to
+    k as the edges between them, while the 20 m chain from the anchor is the full Σ_k; a keyframe propagated from an
+    older anchor (seen before the last closure) gets Σ_k whole."""
+    step_covariance = np.diag([1e-4, 1e-4, 1e-4])
+    covariance, pose = np.zeros((3, 3)), np.zeros(3)
+    covariances, positions = [covariance], [pose[:2].copy()]
+    for _ in range(20):
+        covariance = propagate(covariance, pose, np.array([1.0, 0.0, 0.0]), step_covariance)
+        pose = compose(pose, np.array([1.0, 0.0, 0.0]))
+        covariances.append(covariance)
+        positions.append(pose[:2].copy())
+    anchors = np.zeros(21, int)
+    anchors[:3] = -1  # propagated before the anchor moved
+    sigma_xy, sigma_theta = relative_sigmas(covariance, pose[:2], 0, np.array(covariances), np.array(positions),
+                                            anchors)
+    assert sigma_xy[3] == pytest.approx(position_sigma_m(covariance - _carried(covariances[3], positions[3], pose)))
+    assert sigma_xy[0] == pytest.approx(position_sigma_m(covariance))
+    assert sigma_theta[0] == pytest.approx(math.sqrt(covariance[2, 2]))
+    assert sigma_xy[20] == pytest.approx(0.0, abs=1e-9) and sigma_theta[20] == pytest.approx(0.0, abs=1e-9)
+    # two steps back: what two edges add, seen from 2 m (heading errors swing 1 and 0 m): 1e-4·(2 + 1²) laterally
+    assert sigma_xy[18] == pytest.approx(math.sqrt(1e-4 * 3), rel=1e-6)
+    assert sigma_xy[18] < 0.1 * sigma_xy[3]
+
+
+def _carried(covariance: np.ndarray, position: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    lever = np.eye(3)
+    lever[0, 2], lever[1, 2] = -(pose[1] - position[1]), pose[0] - position[0]
+    out: np.ndarray = lever @ covariance @ lever.T
+    return out
+
+
 def test_an_accepted_closure_anchors_the_uncertainty():
     """The newest keyframe's uncertainty grows with every keyframe edge; a closure accepted at an earlier keyframe
     restarts it from the closure's covariance, propagated over the edges since."""
@@ -119,3 +151,21 @@ def test_an_accepted_closure_anchors_the_uncertainty():
     loop_covariance = np.linalg.inv(slam._loop_info)
     assert np.trace(slam.drift_covariance) < np.trace(grown)
     assert np.trace(slam.drift_covariance) > np.trace(loop_covariance)  # two edges propagated on top
+
+
+def test_a_loop_grid_built_before_the_path_passed_its_centre_is_rebuilt():
+    """The loop grid of a keyframe first searched while the path had not gone past it lacks its later neighbours;
+    reusing it for a revisit would match against half the place (edmonton: a widened search's early look-ups
+    cost a closure pair of the real revisit and 8 of 26 closures)."""
+    scan = _scanner(ROOM)
+    slam = GraphSlam()
+    for k in range(40):
+        pose = np.array([-2.5 + 0.13 * k, -0.5 + 0.02 * k, 0.0])
+        slam.add_scan(float(k), pose, scan(pose))
+    n = slam.n_keyframes
+    assert n >= 8
+    half = slam._loop_grid(2, 2)
+    assert slam._loop_grid(2, 2) is half  # same keyframes: cached
+    full = slam._loop_grid(2, n - 1)
+    assert full is not half
+    assert slam._loop_grid(2, n - 1) is full

@@ -1,5 +1,5 @@
 """Loop closure after a long open loop: the graph's error exceeds the fixed correlative window, and a second search
-widens with the pose uncertainty accumulated since the last accepted closure (``SlamConfig.loop_wide_sigmas``); a
+widens with the pose uncertainty relative to the candidate (``SlamConfig.loop_search_sigmas``); a
 closure found so corrects more than a trusted one may and is accepted once another closure of the same revisit
 confirms it."""
 
@@ -44,8 +44,24 @@ def test_a_closure_beyond_the_fixed_window_is_found_by_the_widened_search():
     fixed, truth = _out_and_back(SlamConfig(), slip_m=3.0)
     _, fixed_poses = fixed.trajectory()
     assert np.hypot(*(fixed_poses[-1, :2] - truth[-1, :2])) > 2.0  # back in the room, still 3 m off: no closure
-    wide, _ = _out_and_back(SlamConfig(loop_wide_sigmas=3.0), slip_m=3.0)
+    wide, _ = _out_and_back(SlamConfig(loop_search_sigmas=3.0), slip_m=3.0)
     _, poses = wide.trajectory()
     assert np.hypot(*(poses[-1, :2] - truth[-1, :2])) < 0.3
     big = [c for c in wide.loop_closures if c.correction > 2.0]
     assert big and len(wide.loop_closures) > len(fixed.loop_closures)
+
+
+def test_the_widened_search_leaves_the_path_just_driven_alone():
+    """Down the corridor and never back: the keyframes 8 m behind are on the open loop being driven, as certain
+    relative to the newest one as the few edges between them, so the widened gate (σ of Σ_jk, not of the whole drift
+    since the start) never reaches them and no loop search runs. Searching them built their loop grids before the
+    path had passed them, and those half neighbourhoods cost later closures (edmonton)."""
+    scan = _scanner(HALL)
+    slam = GraphSlam(SlamConfig(loop_search_sigmas=3.0))
+    pose = np.array([-2.0, 0.0, 0.0])
+    for k in range(130):  # 65 m
+        slam.add_scan(float(k), pose, scan(pose))
+        pose = compose(pose, np.array([0.5, 0.0, 0.0]))
+    drift_sigma_m = float(np.sqrt(np.linalg.eigvalsh(slam.drift_covariance[:2, :2])[-1]))
+    assert 4.0 + 3.0 * drift_sigma_m > SlamConfig().loop_min_travel_m  # the whole drift would reach 8 m back
+    assert slam.loop_checks == 0 and not slam._loop_grids and not slam.closures

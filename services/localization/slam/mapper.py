@@ -32,13 +32,17 @@ A scan that moved far enough becomes a keyframe: a pose-graph node linked to the
 relative pose. Each new keyframe looks for an earlier keyframe nearby (but far back along the path); it is matched
 against that keyframe's neighbourhood (refinement from the current estimate, then a correlative search if that
 fails) and the match becomes a loop-closure *candidate* only when its score is high and the scan fixes both
-translation directions. Opt-in: when that finds nothing, a second correlative search covers ``loop_wide_sigmas`` σ
-of the pose uncertainty accumulated since the last accepted closure (radius and window, ``search_gate.py``; Karto and
-slam_toolbox search within the pose uncertainty the same way): after a long open loop the graph's error exceeds the
-fixed window. A match found only there must fix every direction (a partly degenerate one would keep the graph's
-guess along what it does not fix, and the guess is what is known to be off), and it waits like any large
-correction for a closure of the same revisit to confirm it; it does not pause the normal searches, and it keeps
-its own pace.
+translation directions. With ``loop_search_sigmas`` = n > 0, when that finds nothing, a second correlative search
+looks n σ wide, σ from Σ_jk, the newest keyframe k's pose uncertainty relative to the candidate j
+(``search_gate.py``; Karto and slam_toolbox search within the pose uncertainty the same way): the candidate is the
+nearest old keyframe within loop_search_radius_m + n·σ_xy(Σ_jk) and the window loop_window_xy_m + n·σ_xy,
+loop_window_theta_rad + n·σ_θ (capped). After a long open loop the graph's error exceeds the fixed window. Σ_jk,
+not the whole drift since the last closure, so the keyframes of the open loop just driven (8 m back along the path
+and so within any wide radius) are not searched as if they were uncertain places. A match found only there must
+fix every direction (a partly degenerate one would keep the graph's guess along what it does not fix, and the guess
+is what is known to be off), and it waits like any large correction for a closure of the same revisit to confirm
+it; it does not pause the normal searches, and it keeps its own pace. A keyframe's loop grid (its neighbourhood) is
+cached only with the neighbours it was built from: one built before the path went past it is rebuilt.
 
 Back end: a candidate that agrees with the graph (its correction is below ``loop_trusted_xy_m`` /
 ``loop_trusted_theta_rad``) is accepted at once. One that would bend the graph further is held pending until another
@@ -141,20 +145,17 @@ class SlamConfig(msgspec.Struct, forbid_unknown_fields=True):
     loop_consistency_max_path_m: float = 15.0
     loop_max_chi2: float = 50.0
     loop_search_radius_m: float = 4.0
-    #: > 0 (opt-in): the first search's radius and correlative window grow by this many σ of the newest keyframe's
-    #: pose uncertainty accumulated since the last accepted closure (``search_gate.py``), up to the caps below. Off
-    #: by default: at 3 σ it found fewer accepted closures, not more (edmonton 28 -> 20, fhw 170 -> 160) and MIT CSAIL
-    #: (bag) went from 0.0340 to 0.0375 m. ``loop_wide_sigmas`` widens only a second search, run when the first
-    #: finds nothing
+    #: > 0: when the fixed search (``loop_search_radius_m``, ``loop_window_*``) finds nothing, a second correlative
+    #: search over this many σ of the newest keyframe's uncertainty relative to the candidate, Σ_jk
+    #: (``search_gate.relative_sigmas``): radius_j = loop_search_radius_m + n·σ_xy(Σ_jk), window
+    #: loop_window_xy_m + n·σ_xy, loop_window_theta_rad + n·σ_θ, capped below. After a long open loop the graph's
+    #: error exceeds the fixed window (infinite corridor: 3.2 m along the corridor on the way home). 0: off. Opt-in:
+    #: at 3 σ, corrected logs (ATE RMS m, vs 0): infinite-corridor 1.617 -> 0.762, belgioioso 0.126 -> 0.109, no
+    #: change on aces, fhw, freiburg-079/-101, seattle; but acapulco 0.132 -> 0.178 (seeds 2, 3: 0.118 -> 0.162,
+    #: 0.138 -> 0.201) with its 3 widened closures all true, freiburg-campus 0.261 -> 0.284 (2 false accepted),
+    #: orebro 0.071 -> 0.099, edmonton 0.447 -> 0.474; up to a third more time per scan
     loop_search_sigmas: float = 0.0
     loop_search_max_radius_m: float = 12.0
-    #: > 0 (opt-in): when the normal search finds nothing, a second correlative search over this many σ of the
-    #: newest keyframe's uncertainty since the last accepted closure (``search_gate.py``; radius and window, capped
-    #: as above). After a long open loop the graph's error exceeds the fixed window (infinite corridor: 3.2 m along
-    #: the corridor on the way home, not one candidate in 194 revisiting keyframes). At 3 σ (corrected logs, ATE
-    #: RMS): infinite-corridor 1.617 -> 1.110 m (176 accepted, 0 false), but edmonton 0.447 -> 0.527 (26 -> 18
-    #: closures), hence off by default
-    loop_wide_sigmas: float = 0.0
     loop_window_max_xy_m: float = 4.0
     loop_window_max_theta_rad: float = 0.6
     loop_min_travel_m: float = 8.0
@@ -189,6 +190,7 @@ class LoopClosure:
     state: str = "pending"
     reason: str = ""
     information: np.ndarray | None = None  # None: the configured loop information (a fully constrained match)
+    widened: bool = False  # found only by the widened search (``SlamConfig.loop_search_sigmas``)
 
 
 @dataclass
@@ -234,7 +236,7 @@ class GraphSlam:
         self._last_odom: np.ndarray | None = None
         self._submap: MultiResolutionGrid | None = None
         self._submap_views: ViewProfiles | None = None
-        self._loop_grids: dict[int, MultiResolutionGrid] = {}
+        self._loop_grids: dict[int, tuple[int, MultiResolutionGrid]] = {}  # centre: (newest keyframe in it, grid)
         self._loops_since_optimize = 0
         self._correction_since_optimize = 0.0
         self._last_loop_keyframe = -(10**9)
@@ -243,6 +245,10 @@ class GraphSlam:
         #: Σ of the newest keyframe's pose relative to the last accepted closure (``search_gate.py``)
         self.drift_covariance = np.zeros((3, 3))
         self._anchor_keyframe = 0
+        #: per keyframe j: its Σ_j, position and anchor when propagated (``search_gate.relative_sigmas``)
+        self._drift_covariances: list[np.ndarray] = []
+        self._drift_xy_m: list[np.ndarray] = []
+        self._drift_anchors: list[int] = []
         self._sequential_edges: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # keyframe: (step, Σ) from previous
         self.loop_checks = 0
         self.rescued_matches = 0
@@ -504,6 +510,7 @@ class GraphSlam:
             self._sequential_edges[k] = (from_kf, edge_covariance)
             self.drift_covariance = search_gate.propagate(self.drift_covariance, self.graph.pose(last_kf), from_kf,
                                                           edge_covariance)
+            self._record_drift(k, self.drift_covariance, self.graph.pose(k))
             self._unmatched_m = self._unmatched_rad = 0.0
             self._submap = None
             self._search_loop(k)
@@ -532,23 +539,36 @@ class GraphSlam:
         self._keyframes.append(_Keyframe(points, map_points, origin, travel_m))
         self._keyframe_scans.append(len(self._scans))
         self._scans.append(_ScanRecord(stamp_s, k, np.zeros(3)))
+        self._drift_covariances.append(self.drift_covariance)
+        self._drift_xy_m.append(np.asarray(pose, float)[:2].copy())
+        self._drift_anchors.append(self._anchor_keyframe)
         return k
+
+    def _record_drift(self, k: int, covariance: np.ndarray, pose: np.ndarray) -> None:
+        self._drift_covariances[k] = covariance
+        self._drift_xy_m[k] = np.asarray(pose, float)[:2].copy()
+        self._drift_anchors[k] = self._anchor_keyframe
 
     # ----------------------------------------------------------------------------------------- loop closure
     def _loop_grid(self, center: int, newest_allowed: int) -> MultiResolutionGrid:
-        grid = self._loop_grids.get(center)
-        if grid is not None:
-            return grid
+        """Keyframe ``center``'s neighbourhood (keyframes center ± ``loop_neighbour_keyframes``, none newer than
+        ``newest_allowed``) in its frame. A cached grid is reused only when it holds the same keyframes: one built
+        while the path had not yet gone past ``center`` lacks the keyframes after it, and a revisit matched against
+        that half neighbourhood misses closures it would have found."""
         c = self.config
+        hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
+        cached = self._loop_grids.get(center)
+        if cached is not None and cached[0] == hi:
+            return cached[1]
+        self._loop_grids.pop(center, None)
         poses = self.graph.poses()
         lo = max(0, center - c.loop_neighbour_keyframes)
-        hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
         clouds = [transform_points(between(poses[center], poses[m]), self._keyframes[m].points)
                   for m in range(lo, hi + 1)]
         grid = MultiResolutionGrid.from_points(np.concatenate(clouds), c.resolution_m, c.levels)
         if len(self._loop_grids) >= c.loop_grid_cache_size:
             self._loop_grids.pop(next(iter(self._loop_grids)))
-        self._loop_grids[center] = grid
+        self._loop_grids[center] = (hi, grid)
         return grid
 
     def _search_loop(self, k: int) -> None:
@@ -560,22 +580,28 @@ class GraphSlam:
             return
         dist = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
         dist[~old] = np.inf
+        # the gate of each old keyframe j grows with the uncertainty of k relative to j (``search_gate.py``):
+        # radius_j = loop_search_radius_m + n·σ_xy(Σ_jk), capped; keyframes of the open loop just driven stay at
+        # the fixed radius, places seen before the last accepted closure get the whole drift since
+        n_sigma = c.loop_search_sigmas
+        sigma_xy = sigma_theta = np.zeros(len(dist))
+        if n_sigma > 0:
+            sigma_xy, sigma_theta = search_gate.relative_sigmas(
+                self.drift_covariance, poses[k, :2], self._anchor_keyframe, np.array(self._drift_covariances),
+                np.array(self._drift_xy_m), np.array(self._drift_anchors))
+        radius = np.clip(c.loop_search_radius_m + n_sigma * sigma_xy, c.loop_search_radius_m,
+                         max(c.loop_search_max_radius_m, c.loop_search_radius_m))
+        dist[dist > radius] = np.inf
         candidate = int(np.argmin(dist))
-        sigma_xy = search_gate.position_sigma_m(self.drift_covariance)
-        sigma_theta = search_gate.heading_sigma_rad(self.drift_covariance)
-        radius = search_gate.scaled(c.loop_search_radius_m, c.loop_search_sigmas, sigma_xy, c.loop_search_max_radius_m)
-        wide_radius = search_gate.scaled(c.loop_search_radius_m, c.loop_wide_sigmas, sigma_xy,
-                                         c.loop_search_max_radius_m)
-        if not np.isfinite(dist[candidate]) or dist[candidate] > max(radius, wide_radius):
+        if not np.isfinite(dist[candidate]):
             return
-        window_xy = search_gate.scaled(c.loop_window_xy_m, c.loop_search_sigmas, sigma_xy, c.loop_window_max_xy_m)
-        window_theta = search_gate.scaled(c.loop_window_theta_rad, c.loop_search_sigmas, sigma_theta,
-                                          c.loop_window_max_theta_rad)
-        windows = [(window_xy, window_theta)] if dist[candidate] <= radius else []
-        wide = (search_gate.scaled(c.loop_window_xy_m, c.loop_wide_sigmas, sigma_xy, c.loop_window_max_xy_m),
-                search_gate.scaled(c.loop_window_theta_rad, c.loop_wide_sigmas, sigma_theta,
+        window_xy, window_theta = c.loop_window_xy_m, c.loop_window_theta_rad
+        within_fixed = bool(dist[candidate] <= c.loop_search_radius_m)
+        windows = [(window_xy, window_theta)] if within_fixed else []
+        wide = (search_gate.scaled(window_xy, n_sigma, float(sigma_xy[candidate]), c.loop_window_max_xy_m),
+                search_gate.scaled(window_theta, n_sigma, float(sigma_theta[candidate]),
                                    c.loop_window_max_theta_rad))
-        if wide[0] > window_xy + 0.5 * c.loop_window_xy_m or wide[1] > window_theta + 0.5 * c.loop_window_theta_rad:
+        if wide[0] > 1.5 * window_xy or wide[1] > 1.5 * window_theta:
             windows.append(wide)  # tried only when the normal window finds nothing
         if not windows:
             return
@@ -585,7 +611,7 @@ class GraphSlam:
         guess = between(poses[candidate], poses[k])
         result = refine(grid, points, guess)
         curvature = None  # beyond the fixed radius only the widened search may find a candidate
-        if dist[candidate] <= radius:
+        if within_fixed:
             curvature = self._loop_curvature(grid, points, result, guess, window_xy, window_theta)
         accepted = curvature is not None
         found_wide = False
@@ -622,7 +648,8 @@ class GraphSlam:
                                              1 / c.loop_sigma_theta_rad**2)
         correction = np.hypot(*(measurement[:2] - guess[:2]))
         turn = abs(float(wrap_angle(measurement[2] - guess[2])))
-        closure = LoopClosure(candidate, k, measurement, float(correction + turn), information=information)
+        closure = LoopClosure(candidate, k, measurement, float(correction + turn), information=information,
+                              widened=found_wide)
         self.closures.append(closure)
         if not found_wide:  # a candidate from the widened window alone does not pause the normal searches
             self._last_loop_keyframe = k
@@ -650,10 +677,12 @@ class GraphSlam:
             return
         self._anchor_keyframe = keyframe
         poses = self.graph.poses()
+        self._record_drift(keyframe, covariance, poses[keyframe])
         for k in range(keyframe + 1, self.graph.n_nodes):
             edge = self._sequential_edges.get(k)
             if edge is not None:
                 covariance = search_gate.propagate(covariance, poses[k - 1], edge[0], edge[1])
+            self._record_drift(k, covariance, poses[k])
         self.drift_covariance = covariance
 
     def _path_length(self, a: int, b: int) -> float:
