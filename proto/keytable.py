@@ -27,6 +27,8 @@ _CALL = re.compile(r"\b(publisher|declare_publisher|subscribe|queryable)\(\s*(?:
 TOOLING_PACKAGES = {"common", "cli", "client", "launch", "scenario"}
 CLIENT_MODULES = {"services/recorder/record.py", "services/recorder/replay.py"}
 _ROLE = {"publisher": "pub", "declare_publisher": "pub", "subscribe": "sub", "queryable": "answer"}
+#: keys every ``Node`` subscribes to itself (services/common/node.py), whatever the service's own code says
+NODE_SUBSCRIBED = {"clock": "every service on sim time (`use_sim_time`, by its `Node`)"}
 
 
 def wiring(services_dir: Path) -> dict[str, dict[str, set[str]]]:
@@ -53,8 +55,8 @@ def render(services_dir: Path = REPO_ROOT / "services") -> str:
     lines.append("|---|---|---|---|")
     for key, msg in sorted(TOPICS.items()):
         roles = wired.get(key, {})
-        lines.append(f"| `{key}` | {msg.__name__} | {_names(roles.get('pub', set()))} | "
-                     f"{_names(roles.get('sub', set()))} |")
+        subscribers = NODE_SUBSCRIBED.get(key) or _names(roles.get("sub", set()))
+        lines.append(f"| `{key}` | {msg.__name__} | {_names(roles.get('pub', set()))} | {subscribers} |")
     lines += ["", "| query | request | reply | answered by |", "|---|---|---|---|"]
     for key, (req, rep) in sorted(QUERIES.items()):
         roles = wired.get(key, {})

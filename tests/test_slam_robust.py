@@ -82,6 +82,9 @@ def _chain_graph(n: int) -> GraphSlam:
     for k, p in enumerate(poses):
         slam.graph.add_node(p)
         slam._keyframes.append(type("K", (), {"travel_m": float(k)})())
+        slam._drift_covariances.append(np.zeros((3, 3)))  # the bookkeeping _add_keyframe keeps per keyframe
+        slam._drift_xy_m.append(np.asarray(p[:2], float))
+        slam._drift_anchors.append(0)
         if k:
             slam.graph.add_edge(k - 1, k, between(poses[k - 1], p), slam._sequential_info)
     return slam
