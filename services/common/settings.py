@@ -21,8 +21,9 @@ class ZenohSettings(msgspec.Struct, forbid_unknown_fields=True):
     connect: list[str] = msgspec.field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     listen: list[str] = msgspec.field(default_factory=list)
     config_file: str = ""
-    #: a peer with no ``listen`` endpoint listens on a unix socket of its own in this folder instead of an
-    #: ephemeral loopback TCP port (``zagv up`` sets it: a stack's data path then takes no TCP port at all)
+    #: opt-in: a peer with no ``listen`` endpoint listens on a unix socket of its own in this folder instead of an
+    #: ephemeral loopback TCP port (the data path then takes no TCP port; a unix socket buffers less, so a slow
+    #: subscriber of a DROP topic loses samples sooner: services/common/session.py)
     peer_socket_dir: str = ""
     #: extra zenoh config keys, e.g. {"transport/unicast/lowlatency": true}
     options: dict[str, Any] = msgspec.field(default_factory=dict)

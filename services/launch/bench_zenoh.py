@@ -3,9 +3,8 @@
 Three processes on loopback: a router (``zagv router``), an echo process (``python -m services.launch.bench_zenoh
 echo``) and the measuring process, in each topology:
 
-- ``zenoh.*`` (what ``zagv up`` runs): the router with the settings ``zagv up`` embeds, listening on TCP and on a
-  unix socket, both ends peers as ``zagv up`` starts the services (dialling the router's unix socket, each listening
-  on a unix socket of its own: discovery through the router, data directly);
+- ``zenoh.*`` (what ``zagv up`` runs): the router with the settings ``zagv up`` embeds, both ends with the services'
+  default settings (peers: discovery through the router, data directly);
 - ``zenoh.systemd.*``: the router with ``deploy/zenoh/router-loopback.json5`` and both ends with the ``[zenoh]`` table
   of ``deploy/robot.example.toml``, as the systemd units run them;
 - ``zenoh.routed.*``: both ends clients (``[zenoh] mode = "client"``, the way back): every message through the
@@ -21,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import subprocess
 import sys
 import threading
@@ -38,7 +36,7 @@ from proto.messages import LaserScan
 from services.common.bench import BenchRow
 from services.common.lifetime import die_with_parent
 from services.common.ports import free_port
-from services.common.session import make_socket_dir, open_session
+from services.common.session import open_session
 from services.common.settings import ZenohSettings
 
 PING, PONG, SCAN, COUNT = "bench/ping", "bench/pong", "bench/scan", "bench/count"
@@ -46,11 +44,10 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = REPO_ROOT / "deploy"
 
 
-def topology(name: str, endpoint: str, socket_dir: str) -> tuple[list[str], ZenohSettings]:
+def topology(name: str, endpoint: str) -> tuple[list[str], ZenohSettings]:
     """(extra ``zagv router`` arguments, the two ends' settings) of a topology (module docstring)."""
     if name == "up":
-        router_socket = f"unixsock-stream/{socket_dir}/router.sock"
-        return ["--listen", router_socket], ZenohSettings(connect=[router_socket], peer_socket_dir=socket_dir)
+        return [], ZenohSettings(connect=[endpoint])
     if name == "routed":
         return [], ZenohSettings(mode="client", connect=[endpoint])
     if name == "systemd":
@@ -99,8 +96,7 @@ class _Peers:
     def __enter__(self) -> _Peers:
         port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{port}"
-        self.socket_dir = make_socket_dir()
-        router_args, settings = topology(self.name, self.endpoint, self.socket_dir)
+        router_args, settings = topology(self.name, self.endpoint)
         env = {**os.environ, "ZAGV_PARENT_PID": str(os.getpid())}
         self.router = subprocess.Popen([sys.executable, "-m", "services.cli", "router", "--listen", self.endpoint,
                                         *router_args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env,
@@ -129,7 +125,6 @@ class _Peers:
                 p.wait(5)
             except subprocess.TimeoutExpired:
                 p.kill()
-        shutil.rmtree(self.socket_dir, ignore_errors=True)
 
 
 def round_trips(session: zenoh.Session, size: int, n: int, timeout_s: float = 30.0) -> np.ndarray:

@@ -12,7 +12,6 @@ import asyncio
 import contextlib
 import os
 import random
-import shutil
 import signal
 import sys
 import tempfile
@@ -25,7 +24,7 @@ import zenoh
 from proto.keys import Keys
 from services.common.lifetime import die_with_parent
 from services.common.logs import print_line
-from services.common.session import make_socket_dir, open_session, router_settings
+from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
 from services.launch.fleet import RobotSlot, fleet_slots, parse_robot_arg, resolve_starts, sim_robots_toml, world_robots
 from services.launch.supervisor import ChildSpec, Supervisor, python_module
@@ -74,20 +73,9 @@ class StackPlan:
     robot_slots: list[RobotSlot] = field(default_factory=list)
     fleet: list[RobotSlot] = field(default_factory=list)
 
-    #: the folder of the stack's unix sockets (``run_stack`` makes it): the embedded router's ``router.sock``, which
-    #: the services dial, and one socket per service peer (ZenohSettings.peer_socket_dir); "" keeps TCP
-    socket_dir: str = ""
-
     @property
     def endpoint(self) -> str:
         return self.external_router or f"tcp/127.0.0.1:{self.zenoh_port}"
-
-    @property
-    def router_socket(self) -> str | None:
-        """The embedded router's unix-socket endpoint, None with an external router or no socket folder."""
-        if self.external_router or not self.socket_dir:
-            return None
-        return f"unixsock-stream/{self.socket_dir}/router.sock"
 
     @property
     def can_channel(self) -> str:
@@ -126,9 +114,7 @@ class StackPlan:
         return {f"{rid}.{name}" for rid in self.robot_ids for name in self.services()}
 
     def common_args(self, k: int = 0) -> list[str]:
-        args = ["--connect", self.router_socket or self.endpoint, "--robot-id", self.robot_ids[k]]
-        if self.socket_dir:
-            args += ["--set", f"zenoh.peer_socket_dir={_toml_str(self.socket_dir)}"]
+        args = ["--connect", self.endpoint, "--robot-id", self.robot_ids[k]]
         if self.config:
             args += ["--config", self.config]
         if self.sim:
@@ -287,18 +273,15 @@ class HealthWatch:
 async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce=print) -> int:
     """Run the stack until SIGINT/SIGTERM; returns the exit code."""
     loop = asyncio.get_running_loop()
-    socket_dir = make_socket_dir()
-    plan.socket_dir = socket_dir
     if plan.external_router:  # a client like the services: the router may stop and come back
         router = open_session(ZenohSettings(mode="client", connect=[plan.endpoint]))
-    else:  # TCP for tools and remote clients, a unix socket for the stack's own services
-        router = open_session(router_settings([plan.endpoint, plan.router_socket or plan.endpoint]))
+    else:
+        router = open_session(router_settings([plan.endpoint]))
     try:
         await loop.run_in_executor(None, resolve_fleet, plan)
     except (ValueError, OSError) as exc:
         announce(f"zagv: cannot start the robots: {exc}")
         router.close()
-        shutil.rmtree(socket_dir, ignore_errors=True)
         return 2
     keys = Keys(plan.robot_ids[0])
     ready_timeout_s *= max(1, len(plan.fleet))  # every robot's stack starts on the same machine
@@ -357,7 +340,6 @@ async def run_stack(plan: StackPlan, *, ready_timeout_s: float = 120.0, announce
         await supervisor.stop()
         watch.close()
         router.close()
-        shutil.rmtree(socket_dir, ignore_errors=True)
     return code
 
 
