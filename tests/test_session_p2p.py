@@ -13,6 +13,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 from pathlib import Path
 
@@ -20,12 +21,17 @@ import msgspec
 import pytest
 import zenoh
 
-from services.common.session import PEER_LISTEN_DEFAULT, make_socket_dir, open_session, shm_usable, zenoh_config
+from services.common.session import PEER_LISTEN_DEFAULT, open_session, shm_usable, zenoh_config
 from services.common.settings import ZenohSettings
 from tests.support.stack import free_port
 from tests.support.waiting import wait_for_sync
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def make_socket_dir() -> str:
+    """A private folder short enough for unix socket paths (pytest's tmp_path can be longer than 107 bytes)."""
+    return tempfile.mkdtemp(prefix="zagv-z", dir="/tmp")
 
 
 def test_peer_defaults_listen_on_loopback_only_and_gossip_without_multicast() -> None:

@@ -123,14 +123,11 @@ class SimClock:
         loop = self._loop
         if loop is None:
             raise RuntimeError("SimClock.advance_threadsafe before bind(loop)")
-        if t < self._now:
-            if t >= self._now - 1.0:
-                return  # an older stamp (``advance`` ignores it too)
-            loop.call_soon_threadsafe(self.advance, t, speed_factor)  # the simulator restarted: on the loop
-            self.loop_wakeups += 1
-            return
-        if not self._started.is_set():
-            loop.call_soon_threadsafe(self.advance, t, speed_factor)  # the first tick sets ``started`` on the loop
+        if self._now - 1.0 <= t < self._now:
+            return  # an older stamp (``advance`` ignores it too)
+        if t < self._now or not self._started.is_set():
+            # a simulator restart, or the first tick (which sets ``started``): ``advance`` on the loop
+            loop.call_soon_threadsafe(self.advance, t, speed_factor)
             self.loop_wakeups += 1
             return
         if speed_factor is not None:

@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import os
 import secrets
-import tempfile
 
 import zenoh
 
@@ -58,21 +57,12 @@ def peer_socket(folder: str) -> str:
     """A unix-socket endpoint of this process in ``folder``: ``unixsock-stream/<folder>/<pid>-<random>.sock``.
 
     The name is new for every session (a restarted service never meets its predecessor's file); zenoh removes the
-    socket when the session closes, the folder's owner (``zagv up``) removes what a killed process left."""
+    socket when the session closes; the folder's owner removes what a killed process left."""
     path = os.path.join(os.path.abspath(folder), f"{os.getpid()}-{secrets.token_hex(4)}.sock")
     if len(path.encode()) > UNIX_PATH_MAX:
         raise ValueError(f"zenoh.peer_socket_dir {folder!r}: a socket path there ({len(path.encode())} bytes) is "
                          f"longer than the {UNIX_PATH_MAX} bytes a unix socket address holds")
     return f"unixsock-stream/{path}"
-
-
-def make_socket_dir() -> str:
-    """A new private folder (mode 0700) for a stack's unix sockets, short enough for a socket path
-    (``UNIX_PATH_MAX``): under $TMPDIR, or /tmp when $TMPDIR is a long path. Its maker removes it."""
-    base = tempfile.gettempdir()
-    if len(base) > 48:
-        base = "/tmp"
-    return tempfile.mkdtemp(prefix="zagv-z", dir=base)
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:

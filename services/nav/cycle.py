@@ -147,23 +147,27 @@ class NavCycle:
             self.was_active = False
         for gid, state, err in nav.take_finished():
             out.log.append((logging.INFO, f"goal {gid} {state}{f': {err}' if err else ''}"))
-        out.publish_status_now = due(now, self.next_status, 1.0 / cfg.status_frequency_hz)
+        status_period_s = 1.0 / cfg.status_frequency_hz
+        out.publish_status_now = due(now, self.next_status, status_period_s)
         if out.publish_status_now:
-            self.next_status = now + 1.0 / cfg.status_frequency_hz
+            self.next_status = now + status_period_s
         return out
 
     def _update_costmaps(self, now: float, pose: tuple[float, float, float], out: CycleOutput) -> None:
         nav, cfg = self.nav, self.cfg
-        if due(now, self.next_local, 1.0 / cfg.local_costmap.update_frequency_hz):
+        local_period_s = 1.0 / cfg.local_costmap.update_frequency_hz
+        if due(now, self.next_local, local_period_s):
             nav.update_costmaps(pose, "local")
-            self.next_local = now + 1.0 / cfg.local_costmap.update_frequency_hz
-        if due(now, self.next_global, 1.0 / cfg.global_costmap.update_frequency_hz):
+            self.next_local = now + local_period_s
+        global_period_s = 1.0 / cfg.global_costmap.update_frequency_hz
+        if due(now, self.next_global, global_period_s):
             nav.update_costmaps(pose, "global")
-            self.next_global = now + 1.0 / cfg.global_costmap.update_frequency_hz
-        if cfg.global_costmap.publish_frequency_hz > 0 and \
-                due(now, self.next_costmap_pub, 1.0 / cfg.global_costmap.publish_frequency_hz):
-            out.publish_costmap = True
-            self.next_costmap_pub = now + 1.0 / cfg.global_costmap.publish_frequency_hz
+            self.next_global = now + global_period_s
+        if cfg.global_costmap.publish_frequency_hz > 0:
+            publish_period_s = 1.0 / cfg.global_costmap.publish_frequency_hz
+            if due(now, self.next_costmap_pub, publish_period_s):
+                out.publish_costmap = True
+                self.next_costmap_pub = now + publish_period_s
 
     def _hold_untrusted(self, now: float, out: CycleOutput) -> bool:
         """Hold the goal while localization does not track; fail it after the timeout. False: no longer active."""
