@@ -34,6 +34,7 @@ from proto.messages import (
     WheelStates,
 )
 from proto.messages import Path as PathMsg
+from tests.support.browser import wait_js
 from tests.support.hmi import (
     HmiClient,
     base_url,
@@ -188,7 +189,7 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
             page.wait_for_selector("#login-password")
             shot(page, "00-login")
             login(page, url, password_of(stack))
-            page.wait_for_function("window.zagv.state.map !== null")
+            wait_js(page, "window.zagv.state.map !== null", timeout_s=30)
             page.wait_for_selector("#st-odom:has-text('x 1.50')")
             assert "M1 17.2°" in page.inner_text("#st-modules")
             assert "driving" in page.inner_text("#chip-nav")
@@ -255,7 +256,7 @@ def test_hmi_pages_against_hmi_api(browser, tmp_path):
 
             # curves and the CSV of recorded velocities
             page.click("button[data-tab=curves]")
-            page.wait_for_function("window.zagv.curves.rows.length > 20")
+            wait_js(page, "window.zagv.curves.rows.length > 20", timeout_s=30)
             with page.expect_download() as download:
                 page.click("#btn-csv")
             csv_path = tmp_path / "velocities.csv"
@@ -286,9 +287,8 @@ def test_hmi_drives_the_simulated_robot(browser, tmp_path):
         page = browser.new_page(viewport=VIEWPORT)
         errors = watch_errors(page)
         login(page, url, password_of(stack))
-        page.wait_for_function("window.zagv.state.status && window.zagv.state.status.pose !== null"
-                               " && window.zagv.state.status.wheels && window.zagv.state.status.wheels.link_ok",
-                               timeout=60_000)
+        wait_js(page, "window.zagv.state.status && window.zagv.state.status.pose !== null"
+                " && window.zagv.state.status.wheels && window.zagv.state.status.wheels.link_ok", timeout_s=60)
         page.click("#btn-enable")
         page.wait_for_selector("#chip-drive:has-text('drive enabled')", timeout=30_000)
 
