@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from proto.keys import Keys
-from services.common.ports import free_port
+from services.common.ports import ephemeral_range, free_port
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 
@@ -32,7 +32,7 @@ def free_port_block(n: int) -> int:
         return free_port()
     for _ in range(200):
         base = free_port()
-        if base + n > 65535:
+        if base + n > 65535 or base < ephemeral_range()[0] < base + n:
             continue
         try:
             with contextlib.ExitStack() as held:
