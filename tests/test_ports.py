@@ -17,8 +17,8 @@ def test_chosen_ports_are_free_and_outside_the_ephemeral_range():
 
 def test_a_port_in_use_is_never_chosen(monkeypatch):
     with socket.socket() as held:
-        held.bind(("127.0.0.1", 0))
-        taken = held.getsockname()[1]
+        taken = ports.free_port()
+        held.bind(("127.0.0.1", taken))
         held.listen()
         monkeypatch.setattr(ports, "candidate_ranges", lambda low, high: [range(taken, taken + 1)])
         picked = ports.free_port(random.Random(0))  # the only candidate is taken: the kernel chooses instead
