@@ -40,6 +40,10 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE",
                    help="config override passed to the service it names")
     p.add_argument("--only", help="comma-separated subset of services to start")
+    p.add_argument("--compose", action="append", nargs="?", const="default", metavar="SERVICE,SERVICE,...",
+                   help="run these services in one process (composition, services/launch/container.py); "
+                        "repeatable, one process per group. Without a list: every service but the drive (and the "
+                        "simulator) in one process")
     p.add_argument("--foxglove-port", type=int, default=0,
                    help="serve Foxglove (WebSocket, 127.0.0.1) on this port (default: no Foxglove bridge)")
     p.add_argument("--start-seed", type=int, help="start the services in a random order drawn with this seed "

@@ -22,7 +22,8 @@ def collect(session: zenoh.Session, robot_id: str, timeout_s: float) -> dict[str
         if reply.ok is not None:
             alive.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
     stats: dict[str, dict] = {}
-    for reply in session.get(keys("@stats/*"), timeout=timeout_s):
+    # every service answers, several of them from one process when composed (QueryTarget.ALL)
+    for reply in session.get(keys("@stats/*"), target=zenoh.QueryTarget.ALL, timeout=timeout_s):
         if reply.ok is not None:
             name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
             try:

@@ -8,11 +8,13 @@ import os
 import sys
 
 
-def setup_logging(service: str, level: str | None = None) -> None:
-    """Log to stderr as ``HH:MM:SS.mmm LEVEL service: message`` (level from ZAGV_LOG_LEVEL, default INFO)."""
+def setup_logging(service: str, level: str | None = None, show_logger: bool = False) -> None:
+    """Log to stderr as ``HH:MM:SS.mmm LEVEL service: message`` (level from ZAGV_LOG_LEVEL, default INFO);
+    ``show_logger`` adds the logger's name (``service [zagv.nav]: message``: a container's services share stderr)."""
     handler = logging.StreamHandler(sys.stderr)
+    who = f"{service} [%(name)s]" if show_logger else service
     handler.setFormatter(
-        logging.Formatter(f"%(asctime)s.%(msecs)03d %(levelname)s {service}: %(message)s", datefmt="%H:%M:%S")
+        logging.Formatter(f"%(asctime)s.%(msecs)03d %(levelname)s {who}: %(message)s", datefmt="%H:%M:%S")
     )
     root = logging.getLogger()
     root.handlers[:] = [handler]

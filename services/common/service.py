@@ -1,8 +1,8 @@
 """Entry point shared by every service: arguments, config, session, clock, node, signals, systemd.
 
-Each service's ``__main__`` calls ``service_main("drive", {"drive": DriveConfig}, run)`` where
-``run(ctx)`` is its async main. Common options: ``--config FILE`` (robot TOML), ``--robot-id``,
-``--connect ENDPOINT`` (repeatable), ``--use-sim-time``, ``--check-config`` (validate and exit).
+Each service's ``__main__`` defines ``SERVICE = ServiceSpec("drive", {"drive": DriveConfig}, run)`` where
+``run(ctx)`` is its async main, and runs ``SERVICE.main()``. Common options: ``--config FILE`` (robot TOML),
+``--robot-id``, ``--connect ENDPOINT`` (repeatable), ``--use-sim-time``, ``--check-config`` (validate and exit).
 """
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ import contextlib
 import logging
 import signal
 import sys
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
+import zenoh
 
 from proto.keys import Keys
 from services.common import systemd
@@ -32,6 +33,9 @@ from services.common.session import open_session
 from services.common.settings import ClockSettings, LivenessSettings, ZenohSettings
 
 log = logging.getLogger("zagv.service")
+
+#: a service's async main: ``async def run(ctx: ServiceContext) -> None``
+ServiceMain = Callable[["ServiceContext"], Coroutine[Any, Any, None]]
 
 
 @dataclass
@@ -101,35 +105,97 @@ def load_config(
     return robot, zenoh_settings, clock_settings, tables
 
 
+@dataclass(frozen=True)
+class ServiceSpec:
+    """What a service is to the launchers: its name, its config tables and its async main.
+
+    Each service's ``__main__`` defines ``SERVICE = ServiceSpec(...)``; ``python -m services.<name>`` runs it in a
+    process of its own (``main``), and a container (``services.launch.container``) runs several in one process."""
+
+    name: str
+    sections: dict[str, type]
+    run: ServiceMain
+    #: arguments the service accepts and ignores (the simulator is the clock master: ``--use-sim-time``)
+    ignored_args: tuple[str, ...] = ()
+
+    def args(self, argv: list[str]) -> list[str]:
+        return [a for a in argv if a not in self.ignored_args]
+
+    def main(self, argv: list[str] | None = None) -> None:
+        service_main(self.name, self.sections, self.run, self.args(sys.argv[1:] if argv is None else argv))
+
+
+@dataclass
+class PreparedService:
+    """A service's validated configuration, ready to run (``prepare``)."""
+
+    name: str
+    run: ServiceMain
+    robot: RobotSpec
+    zenoh: ZenohSettings
+    clock: ClockSettings
+    tables: dict[str, Any]
+    config_path: str | None
+    check_only: bool = False
+
+
+def prepare(name: str, sections: dict[str, type], run: ServiceMain,
+            argv: list[str] | None) -> PreparedService:
+    """Parse ``argv`` and load the config; raises ConfigError (or ValueError) naming what is wrong."""
+    args = parse_args(name, argv)
+    robot, zenoh_settings, clock_settings, tables = load_config(name, sections, args)
+    Keys(robot.robot_id)
+    return PreparedService(name, run, robot, zenoh_settings, clock_settings, tables, args.config, args.check_config)
+
+
 def service_main(
     name: str,
     sections: dict[str, type],
-    run: Callable[[ServiceContext], Awaitable[None]],
+    run: ServiceMain,
     argv: list[str] | None = None,
 ) -> None:
     """Parse arguments, validate config, then run ``run(ctx)`` until it returns or SIGINT/SIGTERM arrives."""
     die_with_parent()
-    args = parse_args(name, argv)
     setup_logging(name)
     try:
-        robot, zenoh_settings, clock_settings, tables = load_config(name, sections, args)
-        Keys(robot.robot_id)
+        prepared = prepare(name, sections, run, argv)
     except (ConfigError, ValueError) as exc:
         print(f"zagv {name}: {exc}", file=sys.stderr)
         sys.exit(2)
-    if args.check_config:
+    if prepared.check_only:
         print(f"zagv {name}: config ok")
         return
     with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(_amain(name, run, robot, zenoh_settings, clock_settings, tables, args.config))
+        asyncio.run(_amain(prepared))
 
 
-async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, config_path) -> None:
+async def _amain(prepared: PreparedService) -> None:
+    """One service in a process of its own: its session, and SIGINT/SIGTERM set its stop event."""
+    session = open_session(prepared.zenoh)
+    try:
+        await run_service(prepared, session, handle_signals=True)
+    finally:
+        session.close()
+
+
+async def run_service(prepared: PreparedService, session: zenoh.Session, *, handle_signals: bool,
+                      on_context: Callable[[ServiceContext], None] | None = None,
+                      notify_ready: Callable[[], None] | None = None) -> None:
+    """Run one service on the current loop until its main returns or ``ctx.stop`` is set.
+
+    ``handle_signals``: SIGINT/SIGTERM set ``ctx.stop`` (the main thread's loop only). A container passes False,
+    gets the context through ``on_context`` to stop it itself, and tells systemd READY=1 through
+    ``notify_ready`` once every service it runs is ready."""
+    name, run, robot = prepared.name, prepared.run, prepared.robot
+    clock_settings, tables = prepared.clock, prepared.tables
     loop = asyncio.get_running_loop()
-    session = open_session(zenoh_settings)
     clock = SimClock() if clock_settings.use_sim_time else WallClock()
     node = Node(name, session, Keys(robot.robot_id), clock)
-    ctx = ServiceContext(node=node, robot=robot, config=tables, config_path=config_path)
+    if notify_ready is not None:
+        node.notify_ready = notify_ready
+    ctx = ServiceContext(node=node, robot=robot, config=tables, config_path=prepared.config_path)
+    if on_context is not None:
+        on_context(ctx)
     main = asyncio.current_task()
     stopping = False
 
@@ -142,8 +208,18 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
             assert main is not None
             loop.call_later(5.0, main.cancel)  # a service that ignores ctx.stop is cancelled
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, on_signal, sig)
+    stop_watch: asyncio.Task[None] | None = None
+    if handle_signals:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, on_signal, sig)
+    else:
+        async def cancel_when_ignored() -> None:
+            await ctx.stop.wait()
+            await asyncio.sleep(5.0)
+            assert main is not None
+            main.cancel()  # a service that ignores ctx.stop is cancelled
+
+        stop_watch = loop.create_task(cancel_when_ignored())
     watchdog = None
     period = systemd.watchdog_period_s()
     settings: LivenessSettings = tables.get("liveness") or LivenessSettings()
@@ -183,7 +259,8 @@ async def _amain(name, run, robot, zenoh_settings, clock_settings, tables, confi
         liveness.stop()
         if watchdog:
             watchdog.cancel()
+        if stop_watch is not None:
+            stop_watch.cancel()
         systemd.notify("STOPPING=1")
         node.close()
-        session.close()
         node.log.info("stopped")

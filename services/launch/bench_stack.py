@@ -5,6 +5,8 @@ measurement window, from /proc/<pid>/stat utime+stime; ``stack.rss_mb`` their to
 the end of the window. Each service's share is reported as ``stack.<service>.cpu_cores`` / ``.rss_mb``.
 ``stack.pss_mb`` (for information) is their proportional set size at the same moment: pages shared between them
 (the interpreter, numpy and zenoh libraries, zenoh's SHM pools) count once in total instead of once per process.
+``stack.composed.*`` measures the same six services run as two processes (``zagv up --compose``): the drive, and
+the other five in one container (``services/launch/container.py``), per process.
 ``sim.speed_factor`` is simulated seconds per wall second with the simulator free-running while the robot drives.
 """
 
@@ -68,30 +70,53 @@ async def _start_route(stack: Stack) -> None:
 
 
 def _running_services(stack: Stack) -> list[str]:
-    return [s for s in SERVICES if f"started {s} " in stack.output()]
+    return [s for s in SERVICES if f"[zagv.{s}]: started " in stack.output() or f"INFO {s}: started " in stack.output()]
+
+
+def _measure(stack: Stack, children: list[str], window_s: float) -> tuple[dict, dict, dict]:
+    """CPU cores, RSS and PSS (MB) of each supervised child process over ``window_s`` of wall time."""
+    pids = {c: stack.pid(c) for c in children}
+    cpu0 = {c: cpu_seconds(p) for c, p in pids.items()}
+    t0 = time.monotonic()
+    time.sleep(window_s)  # the measurement window
+    elapsed = time.monotonic() - t0
+    cores = {c: (cpu_seconds(p) - cpu0[c]) / elapsed for c, p in pids.items()}
+    return cores, {c: rss_mb(p) for c, p in pids.items()}, {c: pss_mb(p) for c, p in pids.items()}
 
 
 def bench_footprint(window_s: float = 60.0) -> list[BenchRow]:
+    """The six services as six processes (``zagv up``'s default)."""
     with tempfile.TemporaryDirectory(prefix="zagv-bench-") as tmp, Stack(Path(tmp), None, speed=1.0) as stack:
         services = _running_services(stack)
         if "nav" in services:
             asyncio.run(_start_route(stack))
-        pids = {s: stack.pid(s) for s in services}
-        cpu0 = {s: cpu_seconds(p) for s, p in pids.items()}
-        t0 = time.monotonic()
-        time.sleep(window_s)  # the measurement window
-        elapsed = time.monotonic() - t0
-        cores = {s: (cpu_seconds(p) - cpu0[s]) / elapsed for s, p in pids.items()}
-        rss = {s: rss_mb(p) for s, p in pids.items()}
-        pss = {s: pss_mb(p) for s, p in pids.items()}
+        cores, rss, pss = _measure(stack, services, window_s)
+    return _footprint_rows("stack", cores, rss, pss, "<= 0.30", "<= 450")
+
+
+#: ``stack.composed``: the same six services with all but the drive in one process (``zagv up --compose``)
+COMPOSED = ["lidar", "safety", "localization", "nav", "hmi_api"]
+
+
+def bench_footprint_composed(window_s: float = 60.0) -> list[BenchRow]:
+    """The six services in two processes: the drive, and the other five composed (services/launch/container.py)."""
+    with tempfile.TemporaryDirectory(prefix="zagv-bench-") as tmp, \
+            Stack(Path(tmp), None, speed=1.0, extra_args=["--compose", ",".join(COMPOSED)]) as stack:
+        if "nav" in _running_services(stack):
+            asyncio.run(_start_route(stack))
+        cores, rss, pss = _measure(stack, ["drive", "components"], window_s)
+    return _footprint_rows("stack.composed", cores, rss, pss, "<= 0.30", "<= 450")
+
+
+def _footprint_rows(prefix: str, cores: dict, rss: dict, pss: dict, cpu_goal: str, rss_goal: str) -> list[BenchRow]:
     rows = [
-        BenchRow("stack.cpu_cores", sum(cores.values()), "cores", "<= 0.30"),
-        BenchRow("stack.rss_mb", sum(rss.values()), "MB", "<= 450"),
-        BenchRow("stack.pss_mb", sum(pss.values()), "MB", "shared pages counted once (information)"),
+        BenchRow(f"{prefix}.cpu_cores", sum(cores.values()), "cores", cpu_goal),
+        BenchRow(f"{prefix}.rss_mb", sum(rss.values()), "MB", rss_goal),
+        BenchRow(f"{prefix}.pss_mb", sum(pss.values()), "MB", "shared pages counted once (information)"),
     ]
-    for s in services:
-        rows.append(BenchRow(f"stack.{s}.cpu_cores", cores[s], "cores"))
-        rows.append(BenchRow(f"stack.{s}.rss_mb", rss[s], "MB"))
+    for c in cores:
+        rows.append(BenchRow(f"{prefix}.{c}.cpu_cores", cores[c], "cores"))
+        rows.append(BenchRow(f"{prefix}.{c}.rss_mb", rss[c], "MB"))
     return rows
 
 
@@ -113,4 +138,5 @@ def bench_sim_speed(window_s: float = 20.0) -> list[BenchRow]:
     return [BenchRow("sim.speed_factor", (s1 - s0) / (w1 - w0), "x", ">= 5")]
 
 
-BENCHES = [("sim.speed_factor", bench_sim_speed), ("stack", bench_footprint)]
+BENCHES = [("sim.speed_factor", bench_sim_speed), ("stack", bench_footprint),
+           ("stack.composed", bench_footprint_composed)]

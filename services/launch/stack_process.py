@@ -152,10 +152,16 @@ class Stack:
             return len(self.lines)
 
     def pid(self, service: str) -> int:
-        """The pid of the newest instance of ``service`` (from the supervisor's start lines)."""
+        """The pid of the newest instance of ``service`` (from the supervisor's start lines), or of the container
+        it runs in (``zagv up --compose``: the container's ``running a, b, ... in one process`` line)."""
         with self._lock:
             pids = [int(m.group(1)) for line in self.lines
                     if (m := re.search(rf"^zagv\s+\| started {re.escape(service)} \(pid (\d+)\)", line))]
+            containers = [m.group(1) for line in self.lines
+                          if (m := re.search(r"^(\S+)\s+\| .*\[zagv\.container\]: running (.+) in one process", line))
+                          and service in m.group(2).split(", ")]
+        if not pids and containers:
+            return self.pid(containers[-1])
         if not pids:
             raise AssertionError(f"{service} was never started:\n" + self.output()[-3000:])
         return pids[-1]

@@ -26,6 +26,7 @@ from services.common.lifetime import die_with_parent
 from services.common.logs import print_line
 from services.common.session import open_session, router_settings
 from services.common.settings import ZenohSettings
+from services.launch.container import COMPOSABLE, SEPARATOR
 from services.launch.fleet import RobotSlot, fleet_slots, parse_robot_arg, resolve_starts, sim_robots_toml, world_robots
 from services.launch.supervisor import ChildSpec, Supervisor, python_module
 
@@ -72,6 +73,8 @@ class StackPlan:
     robot_count: int = 1
     robot_slots: list[RobotSlot] = field(default_factory=list)
     fleet: list[RobotSlot] = field(default_factory=list)
+    #: composition: each group's services run in one process (``services.launch.container``), per robot
+    compose: list[list[str]] = field(default_factory=list)
 
     @property
     def endpoint(self) -> str:
@@ -169,6 +172,13 @@ class StackPlan:
         sets += [s for s in self.extra_sets if s.startswith(prefix)]
         return [a for s in sets for a in ("--set", s)]
 
+    def composed_groups(self) -> list[list[str]]:
+        """The ``compose`` groups cut to the services this plan starts; a group left with one service is dropped
+        (that service runs on its own)."""
+        started = self.services()
+        groups = [[s for s in group if s in started] for group in self.compose]
+        return [g for g in groups if len(g) > 1]
+
     def children(self) -> list[ChildSpec]:
         env = {"PYTHONPATH": os.pathsep.join(filter(None, [str(REPO_ROOT), os.environ.get("PYTHONPATH")]))}
         specs = []
@@ -180,16 +190,57 @@ class StackPlan:
         if "vda5050" in self.services() and self.mqtt_embedded:
             specs.append(ChildSpec("mqtt", python_module("services.vda5050.broker", "--port", str(self.mqtt_port)),
                                    env=env))
+        groups = self.composed_groups()
+        group_of = {name: group for group in groups for name in group}
         for name in self.services():
             if name == "sim":  # one simulator for every robot: one world, one clock
                 specs.append(ChildSpec(name, python_module("services.sim", *self.common_args(0),
                                                            *self.service_sets(name, 0)), env=env))
+                continue
+            if name in group_of:
+                group = group_of[name]
+                if name == group[0]:  # the container starts where its first service would have
+                    for k in robots:
+                        argv = [a for member in group for a in
+                                (SEPARATOR, member, *self.common_args(k), *self.service_sets(member, k))]
+                        child = self.child_name(k, container_name(groups.index(group)))
+                        specs.append(ChildSpec(child, python_module("services.launch.container", "--name", child,
+                                                                    *argv[1:]), env=env))
                 continue
             for k in robots:
                 argv = python_module(f"services.{name}", *self.common_args(k), *self.service_sets(name, k))
                 extra = {key: os.environ.get(key, value) for key, value in SERVICE_ENV.get(name, {}).items()}
                 specs.append(ChildSpec(self.child_name(k, name), argv, env={**env, **extra}))
         return specs
+
+
+#: ``zagv up --compose`` without a list: every service but the drive in one process. The drive keeps a process of
+#: its own: its control loop and CAN link should not wait for another service's step under the shared GIL.
+DEFAULT_COMPOSITION = ["lidar", "safety", "localization", "nav", "recorder", "hmi_api", "foxglove_bridge", "vda5050"]
+
+
+def container_name(index: int) -> str:
+    """The supervisor's name for the ``index``-th composed process: ``components``, ``components-2``, ..."""
+    return "components" if index == 0 else f"components-{index + 1}"
+
+
+def parse_compose(values: list[str] | None) -> list[list[str]]:
+    """``--compose`` values as groups: ``default`` is DEFAULT_COMPOSITION, otherwise comma-separated service names;
+    ValueError names a service that cannot be composed or one given in two groups."""
+    composable = set(COMPOSABLE)
+    groups: list[list[str]] = []
+    seen: set[str] = set()
+    for value in values or []:
+        group = list(DEFAULT_COMPOSITION) if value == "default" else [s.strip() for s in value.split(",") if s.strip()]
+        for name in group:
+            if name not in composable:
+                raise ValueError(f"--compose: {name!r} cannot run in a container "
+                                 f"(composable: {', '.join(sorted(composable))})")
+            if name in seen:
+                raise ValueError(f"--compose: {name} is in two groups")
+            seen.add(name)
+        groups.append(group)
+    return groups
 
 
 #: per-service environment, as the systemd units set it (the caller's own value wins). hmi_api: glibc keeps at most
@@ -380,6 +431,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
         mqtt_embedded=not getattr(args, "no_embedded_broker", False),
         robot_count=getattr(args, "robots", 1), robot_slots=[parse_robot_arg(r) for r in getattr(args, "robot", [])],
+        compose=parse_compose(getattr(args, "compose", None)),
     )
 
 

@@ -4,9 +4,11 @@ The service is ``mapping.ModeSwitcher``: it owns the subscriptions and queries a
 (``node.LocalizationNode``) in navigation mode or to SLAM (``mapping.MappingNode``) in mapping mode.
 """
 
-from services.common.service import service_main
+from services.common.service import ServiceSpec
 from services.localization.config import LocalizationConfig
 from services.localization.mapping import run
 
+SERVICE = ServiceSpec("localization", {"localization": LocalizationConfig}, run)
+
 if __name__ == "__main__":
-    service_main("localization", {"localization": LocalizationConfig}, run)
+    SERVICE.main()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.common.service import ServiceContext, service_main
+from services.common.service import ServiceContext, ServiceSpec
 from services.nav.config import NavConfig
 
 
@@ -12,9 +12,7 @@ async def run(ctx: ServiceContext) -> None:
     await run_node(ctx)
 
 
-def main() -> None:
-    service_main("nav", {"nav": NavConfig}, run)
-
+SERVICE = ServiceSpec("nav", {"nav": NavConfig}, run)
 
 if __name__ == "__main__":
-    main()
+    SERVICE.main()

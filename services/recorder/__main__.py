@@ -1,8 +1,10 @@
 """``python -m services.recorder``: the black box service."""
 
-from services.common.service import service_main
+from services.common.service import ServiceSpec
 from services.recorder.config import RecorderConfig
 from services.recorder.node import run
 
+SERVICE = ServiceSpec("recorder", {"recorder": RecorderConfig}, run)
+
 if __name__ == "__main__":
-    service_main("recorder", {"recorder": RecorderConfig}, run)
+    SERVICE.main()

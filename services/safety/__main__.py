@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.common.service import ServiceContext, service_main
+from services.common.service import ServiceContext, ServiceSpec
 from services.safety.config import SafetyConfig
 
 
@@ -12,9 +12,7 @@ async def run(ctx: ServiceContext) -> None:
     await run_node(ctx)
 
 
-def main() -> None:
-    service_main("safety", {"safety": SafetyConfig}, run)
-
+SERVICE = ServiceSpec("safety", {"safety": SafetyConfig}, run)
 
 if __name__ == "__main__":
-    main()
+    SERVICE.main()

@@ -4,10 +4,10 @@ The simulator is the clock master: ``--use-sim-time`` (which ``zagv up --sim`` g
 and ignored, so the service does not subscribe to the ``clock`` it publishes itself.
 """
 
-import sys
-
-from services.common.service import service_main
+from services.common.service import ServiceSpec
 from services.sim.node import SimConfig, run
 
+SERVICE = ServiceSpec("sim", {"sim": SimConfig}, run, ignored_args=("--use-sim-time",))
+
 if __name__ == "__main__":
-    service_main("sim", {"sim": SimConfig}, run, [a for a in sys.argv[1:] if a != "--use-sim-time"])
+    SERVICE.main()

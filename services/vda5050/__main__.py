@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.common.service import ServiceContext, service_main
+from services.common.service import ServiceContext, ServiceSpec
 from services.vda5050.config import Vda5050Config
 
 
@@ -12,9 +12,7 @@ async def run(ctx: ServiceContext) -> None:
     await run_node(ctx)
 
 
-def main() -> None:
-    service_main("vda5050", {"vda5050": Vda5050Config}, run)
-
+SERVICE = ServiceSpec("vda5050", {"vda5050": Vda5050Config}, run)
 
 if __name__ == "__main__":
-    main()
+    SERVICE.main()

@@ -1,0 +1,132 @@
+"""Composition: several services in one process (services/launch/container.py, ``zagv up --compose``)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from proto import Keys, encode
+from proto.messages import Twist2D
+from services.client.status import collect
+from services.common.config import ConfigError
+from services.common.node import Node, SharedReader
+from services.common.session import open_session
+from services.common.settings import ZenohSettings
+from services.launch.container import split_groups
+from services.launch.up import DEFAULT_COMPOSITION, StackPlan, parse_compose
+from tests.support.waiting import wait_for
+
+
+def test_groups_are_split_on_the_separator_and_checked():
+    assert split_groups(["nav", "--robot-id", "r2", "::", "localization"]) == [
+        ("nav", ["--robot-id", "r2"]), ("localization", [])]
+    with pytest.raises(ConfigError, match="'sim' cannot run in a container"):
+        split_groups(["sim"])
+    with pytest.raises(ConfigError, match="nav is given twice"):
+        split_groups(["nav", "::", "nav"])
+    with pytest.raises(ConfigError, match="empty service"):
+        split_groups(["nav", "::"])
+
+
+def test_zagv_up_runs_each_group_as_one_child_and_keeps_the_drive_apart():
+    assert "drive" not in DEFAULT_COMPOSITION and "sim" not in DEFAULT_COMPOSITION
+    plan = StackPlan(sim=True, compose=parse_compose(["default"]), run_dir="/nonexistent")
+    names = [c.name for c in plan.children()]
+    assert names == ["canbus", "sim", "drive", "components"]
+    argv = plan.children()[-1].argv
+    members = [argv[i + 1] for i, a in enumerate(argv) if a == "::"]
+    assert [argv[argv.index("--name") + 2], *members] == ["lidar", "safety", "localization", "nav", "recorder",
+                                                          "hmi_api"]
+    two = StackPlan(sim=False, compose=parse_compose(["lidar,safety", "nav,localization"]), run_dir="/x")
+    assert [c.name for c in two.children()] == ["drive", "components", "components-2", "recorder", "hmi_api"]
+    one_left = StackPlan(sim=False, only=["drive", "nav"], compose=parse_compose(["nav,localization"]), run_dir="/x")
+    assert [c.name for c in one_left.children()] == ["drive", "nav"]  # a group of one runs on its own
+    with pytest.raises(ValueError, match="'sim' cannot run in a container"):
+        parse_compose(["sim,nav"])
+    with pytest.raises(ValueError, match="nav is in two groups"):
+        parse_compose(["nav,lidar", "nav"])
+
+
+@pytest.fixture
+def session(router):
+    s = open_session(ZenohSettings(connect=[router]))
+    yield s
+    s.close()
+
+
+async def test_nodes_of_one_process_share_a_reader_per_key(session, router):
+    keys = Keys("c1")
+    a, b = Node("a", session, keys), Node("b", session, keys)
+    got_a: list[float] = []
+    got_b: list[float] = []
+    a.subscribe("cmd_vel", lambda m: got_a.append(m.vx))
+    b.subscribe("cmd_vel", lambda m: got_b.append(m.vx))
+    shared = [r for k, r in SharedReader._registry.items() if k[1] == keys("cmd_vel") and r.session is session]
+    assert len(shared) == 1 and len(shared[0].listeners) == 2
+    publisher = open_session(ZenohSettings(connect=[router]))
+    try:
+        pub = publisher.declare_publisher(keys("cmd_vel"))
+        await wait_for(lambda: (pub.put(encode(Twist2D(vx=0.5))), bool(got_a) and bool(got_b))[1], timeout_s=5)
+        a.close()  # b keeps the reader
+        assert len(shared[0].listeners) == 1
+        n = len(got_b)
+        await wait_for(lambda: (pub.put(encode(Twist2D(vx=0.7))), len(got_b) > n)[1], timeout_s=5)
+        b.close()  # the last one out undeclares it
+        assert shared[0].registry_key not in SharedReader._registry
+    finally:
+        publisher.close()
+
+
+async def test_messages_that_arrive_together_share_one_loop_wake_up(session):
+    node = Node("n", session, Keys("c2"))
+    delivered: list[int] = []
+    release = threading.Event()
+
+    def post_three() -> None:
+        for i in range(3):
+            node._post(delivered.append, i)
+        release.set()
+
+    # the loop is held in this coroutine while another thread posts three messages: one drain takes all three
+    thread = threading.Thread(target=post_three)
+    thread.start()
+    release.wait(5.0)
+    thread.join()
+    assert node.loop_wakeups == 1 and delivered == []
+    await asyncio.sleep(0)
+    assert delivered == [0, 1, 2]
+    node._post(delivered.append, 3)  # the next one schedules a new drain
+    await asyncio.sleep(0)
+    assert delivered == [0, 1, 2, 3] and node.loop_wakeups == 2
+    node.close()
+
+
+@pytest.mark.integration
+def test_a_composed_stack_reaches_a_goal_answers_for_every_service_and_restarts_as_one(stack_factory):
+    stack = stack_factory(None, speed=2.0, extra_args=["--compose"])
+    stack.start(ready_timeout_s=120)
+    composed = ["lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
+    assert stack.pid("drive") != stack.pid("components")
+    assert {stack.pid(s) for s in composed} == {stack.pid("components")}
+    # every composed service answers a wildcard query (each replies on its own key: none is consolidated away)
+    report = collect(stack.session(), stack.robot_id, 3.0)
+    assert all(report[s]["healthy"] and report[s]["stats"].get("service") == s for s in [*composed, "drive"]), report
+
+    goal = subprocess.run([sys.executable, "-m", "services.cli", "goal", "3.0", "0.1", "1.57", "--timeout", "300",
+                           "--connect", stack.endpoint, "--robot-id", stack.robot_id],
+                          capture_output=True, text=True, timeout=600)
+    assert goal.returncode == 0 and "succeeded" in goal.stdout, goal.stdout + goal.stderr
+
+    # a kill takes the whole container; the supervisor restarts it and every service's token comes back
+    mark = stack.line_count()
+    old_pid = stack.pid("components")
+    os.kill(old_pid, signal.SIGKILL)
+    for service in composed:
+        stack.wait_line(rf"^zagv: {service} healthy again", timeout_s=120, after=mark)
+    assert stack.pid("components") != old_pid
