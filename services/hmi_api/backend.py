@@ -113,19 +113,23 @@ class Backend:
                     setattr(v, version, getattr(v, version) + 1)
             return set_it
 
-        # latched topics (pose, map_odom, nav/status, paths, map) arrive whatever the start order (Node.subscribe)
-        n.subscribe("odom", setter("odom"))
-        n.subscribe("pose", setter("pose"), latched=True)
-        n.subscribe("tf/map_odom", setter("map_odom"), latched=True)
-        n.subscribe("wheels", setter("wheels"))
-        n.subscribe("nav/status", setter("nav"), latched=True)
-        n.subscribe("safety/state", setter("safety"), latched=True)
-        n.subscribe("scan", setter("scan"))
-        n.subscribe("nav/path", setter("path", "path_version"), latched=True)
-        n.subscribe("nav/local_plan", setter("local_plan", "path_version"))
-        n.subscribe("particles", setter("particles", "particles_version"))
-        n.subscribe("map", self._on_map, latched=True)
-        n.subscribe("cmd_vel", self._on_cmd)
+        # latched topics (pose, map_odom, nav/status, paths, map) arrive whatever the start order (Node.subscribe).
+        # Every handler only stores the newest message, which the paced WebSocket frames and the HTTP handlers read:
+        # they run on the subscribers' reader threads (an attribute store is atomic under the GIL), so the
+        # 190 messages a second the HMI watches do not wake its event loop once each.
+        newest: dict[str, Any] = {"on_zenoh_thread": True, "queue": 1}
+        n.subscribe("odom", setter("odom"), **newest)
+        n.subscribe("pose", setter("pose"), latched=True, **newest)
+        n.subscribe("tf/map_odom", setter("map_odom"), latched=True, **newest)
+        n.subscribe("wheels", setter("wheels"), **newest)
+        n.subscribe("nav/status", setter("nav"), latched=True, **newest)
+        n.subscribe("safety/state", setter("safety"), latched=True, **newest)
+        n.subscribe("scan", setter("scan"), **newest)
+        n.subscribe("nav/path", setter("path", "path_version"), latched=True, **newest)
+        n.subscribe("nav/local_plan", setter("local_plan", "path_version"), **newest)
+        n.subscribe("particles", setter("particles", "particles_version"), **newest)
+        n.subscribe("map", self._on_map, latched=True, **newest)
+        n.subscribe("cmd_vel", self._on_cmd, **newest)
 
     def _on_map(self, grid: OccupancyGrid) -> None:
         self.view.grid = grid

@@ -127,7 +127,8 @@ class RobotView:
 
     def stale(self, wall_now_s: float, max_age_s: float = 1.0) -> list[str]:
         """Streaming topics whose last message is older than ``max_age_s`` (a publisher that went quiet)."""
-        return sorted(k for k, t in self.received.items() if k in self.STREAMING and wall_now_s - t > max_age_s)
+        received = tuple(self.received.items())  # one copy: the subscribers' threads add keys
+        return sorted(k for k, t in received if k in self.STREAMING and wall_now_s - t > max_age_s)
 
     def status(self, now_s: float, clock: str, jog: dict[str, Any], wall_now_s: float | None = None) -> dict[str, Any]:
         """The JSON-ready status: odom, map pose, wheels, nav, health, jog, map, stale topics."""
