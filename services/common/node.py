@@ -281,6 +281,7 @@ class Node:
             "received": dict(self.received),
             "delivered": dict(self.delivered),
             "loop_wakeups": self.loop_wakeups,
+            "clock_loop_wakeups": getattr(self.clock, "loop_wakeups", 0),
             "clock_s": self.clock.now(),
             **self.extra_stats,
         }

@@ -60,6 +60,16 @@ class RobotRejected(RuntimeError):
     """A robot service answered with a refusal; the message is its reason."""
 
 
+async def _first_of(*events: asyncio.Event) -> None:
+    """Return once any of ``events`` is set."""
+    waiters = [asyncio.ensure_future(e.wait()) for e in events]
+    try:
+        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waiters:
+            w.cancel()
+
+
 class Backend:
     """State and actions behind the HTTP API (one per process)."""
 
@@ -82,6 +92,7 @@ class Backend:
         self._map_png: tuple[int, bytes] | None = None
         self._cmd_pub = node.publisher("cmd_vel")
         self.jog_published = 0
+        self._jog_requested = asyncio.Event()  # set by each jog request: wakes a silent jog loop
         self._subscribe()
         self._health_sub = node.session.liveliness().declare_subscriber(
             node.keys.health_all, self._on_health, history=True)
@@ -164,9 +175,13 @@ class Backend:
         rate = Rate(self.node.clock, self.config.jog_rate_hz)
         while not stop.is_set():
             out = self.jog.next_output(time.monotonic())
-            if out is not None:
-                self._cmd_pub.put(Twist2D(vx=out[0], vy=out[1], wz=out[2], stamp=self.node.clock.now()))
-                self.jog_published += 1
+            if out is None:  # silent until the next jog request: no wake-up per cycle while nobody jogs
+                self._jog_requested.clear()
+                await _first_of(self._jog_requested, stop)
+                rate = Rate(self.node.clock, self.config.jog_rate_hz)
+                continue
+            self._cmd_pub.put(Twist2D(vx=out[0], vy=out[1], wz=out[2], stamp=self.node.clock.now()))
+            self.jog_published += 1
             await rate.sleep()
 
     async def record_loop(self, stop: asyncio.Event) -> None:
@@ -219,6 +234,7 @@ class Backend:
     def jog_command(self, vx: float, vy: float, wz: float) -> tuple[float, float, float]:
         twist = self.robot.twist_limits().clamp(vx, vy, wz)
         started = self.jog.command(twist, time.monotonic())
+        self._jog_requested.set()
         nav = self.view.nav
         if started and nav is not None and nav.state in ACTIVE_NAV_STATES:
             # a jog takes the robot from navigation: cancel the goal so nav stops commanding too
