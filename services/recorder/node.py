@@ -87,6 +87,11 @@ class BlackBox:
             self.node.log.warning("black box trigger: %s", reason)
             self.node.spawn(self.save_now(reason))
 
+    def trigger_threadsafe(self, reason: str | None) -> None:
+        """``trigger`` from a reader thread."""
+        if reason:
+            self.node.loop.call_soon_threadsafe(self.trigger, reason)
+
     def on_health(self, sample: zenoh.Sample) -> None:
         service = str(sample.key_expr).rsplit("/", 1)[-1]
         if sample.kind == zenoh.SampleKind.DELETE and service != self.node.name and not self.ctx.stop.is_set():
@@ -107,8 +112,12 @@ class BlackBox:
             subs.append(node.session.declare_subscriber(node.keys.everything, self.on_sample))
             node.session.get(node.keys("map"), lambda r: self.on_sample(r.ok) if r.ok is not None else None,
                              timeout=2.0)
-            node.subscribe("wheels", lambda w: self.trigger(self.triggers.on_wheels(w)), msg_type=WheelStates)
-            node.subscribe("nav/status", lambda s: self.trigger(self.triggers.on_nav_status(s)), msg_type=NavStatus)
+            # edge detection on the reader threads (each touches its own fields of Triggers); the loop is woken
+            # only when a save is due, not for each of the drive's 50 wheel states a second
+            node.subscribe("wheels", lambda w: self.trigger_threadsafe(self.triggers.on_wheels(w)),
+                           msg_type=WheelStates, on_zenoh_thread=True)
+            node.subscribe("nav/status", lambda s: self.trigger_threadsafe(self.triggers.on_nav_status(s)),
+                           msg_type=NavStatus, on_zenoh_thread=True)
             if cfg.save_on_crash:
                 subs.append(node.session.liveliness().declare_subscriber(node.keys.health_all, self.on_health))
         node.queryable("recorder/save", self.on_save)
