@@ -15,6 +15,7 @@ from services.common.se2 import (
     between,
     compose,
     interpolate,
+    interpolate_between,
     inverse,
     quaternion_to_yaw,
     rotate,
@@ -174,3 +175,15 @@ def test_robot_pose_and_frame_prefers_map_odom_then_odometry_then_the_map_pose()
     assert robot_pose_and_frame(odom, None, map_pose) == (map_pose, "map")
     assert robot_pose_and_frame(None, map_odom, map_pose) == (map_pose, "map")
     assert robot_pose_and_frame(None, None, None) is None
+
+
+def test_interpolate_between_two_poses_matches_the_array_interpolation():
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        a = (*rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi))
+        b = (a[0] + rng.uniform(-1, 1), a[1] + rng.uniform(-1, 1), rng.uniform(-np.pi, np.pi))
+        f = rng.uniform(0, 1)
+        expected = interpolate(np.array([0.0, 1.0]), np.array([a, b]), f)[0]
+        got = interpolate_between(a, b, f)
+        assert np.allclose(got[:2], expected[:2], atol=1e-12)
+        assert abs(np.angle(np.exp(1j * (got[2] - expected[2])))) < 1e-12

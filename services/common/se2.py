@@ -126,6 +126,13 @@ def interpolate(stamps_s: np.ndarray, poses: np.ndarray, at_s: np.ndarray | floa
     return np.stack([x, y, wrap_angle(th)], axis=-1)
 
 
+def interpolate_between(a: Pose2, b: Pose2, fraction: float) -> Pose2:
+    """The pose ``fraction`` (0..1) of the way from ``a`` to ``b``: x and y linearly, the angle along the shorter
+    arc (``interpolate`` for one stamp between two poses, without arrays)."""
+    turn = wrap_angle(b[2] - a[2])
+    return a[0] + fraction * (b[0] - a[0]), a[1] + fraction * (b[1] - a[1]), wrap_angle(a[2] + fraction * turn)
+
+
 def robot_pose_and_frame(odom_pose: Pose2 | None, map_odom: Pose2 | None,
                          map_pose: Pose2 | None) -> tuple[Pose2, str] | None:
     """The robot's best known pose and its frame, as a viewer shows it: ``map_odom ∘ odom_pose`` in ``map`` when

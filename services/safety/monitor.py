@@ -36,6 +36,7 @@ travel ago (odometry drifts with distance, not with time: a robot standing still
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ import msgspec
 import numpy as np
 
 from services.common.clock import is_fresh
-from services.common.se2 import between, interpolate, inverse, transform_points, wrap_angle
+from services.common.se2 import between, interpolate_between, inverse, transform_points, wrap_angle
 
 Pose = tuple[float, float, float]
 
@@ -176,9 +177,11 @@ class CollisionMonitor:
             if stamp - self.odom_stamps[-1] > self.params.uncorrected_scan_timeout_s:
                 return None
             return self.odom_poses[-1]
-        x, y, theta = interpolate(np.fromiter(self.odom_stamps, float, len(self.odom_stamps)),
-                                  np.array(self.odom_poses, dtype=np.float64), stamp)[0]
-        return float(x), float(y), float(theta)
+        # the two noted poses around the stamp (bisection: called for every scan and command, on a history of
+        # about a hundred poses, which ``se2.interpolate`` would first copy into arrays)
+        i = bisect.bisect_right(self.odom_stamps, stamp)
+        t0, t1 = self.odom_stamps[i - 1], self.odom_stamps[i]
+        return interpolate_between(self.odom_poses[i - 1], self.odom_poses[i], (stamp - t0) / (t1 - t0))
 
     def base_shift(self, now: float) -> tuple[Pose, float] | None:
         """The base's odometry motion from the scan's stamp to the newest odometry pose (in the base frame at the
