@@ -334,3 +334,39 @@ def test_the_site_servers_units_run_its_router_and_the_fleet_view(venv: Path, tm
     verified = systemd_analyze_verify(dest)
     assert verified.returncode == 0, verified.stdout + verified.stderr
     assert not [line for line in (verified.stdout + verified.stderr).splitlines() if "zagv" in line]
+
+
+def test_compose_runs_safety_localization_nav_and_recorder_in_one_unit(venv: Path, fake_zenohd: Path,
+                                                                       tmp_path: Path) -> None:
+    opts = options(venv, compose=True)
+    units = rendered(opts)
+    composed = [f"zagv-{n}.service" for n in install_units.COMPOSED]
+    assert "zagv-components.service" in units and not set(composed) & set(units)
+    assert set(words(units["zagv.target"], "Unit", "Wants")) == {
+        n for n in units if n.endswith(".service")}
+    unit = units["zagv-components.service"]
+    for key, value in HARDENING.items():
+        assert one(unit, "Service", key) == value, key
+    assert one(unit, "Service", "Type") == "notify" and one(unit, "Service", "NotifyAccess") == "main"
+    assert words(unit, "Service", "IPAddressAllow") == ["localhost"]
+    exec_start = one(unit, "Service", "ExecStart")
+    assert exec_start.startswith(f"{venv}/bin/python -m services.launch.container --name components safety ")
+    members = [exec_start.split()[i + 1] for i, w in enumerate(exec_start.split()) if w == "::"]
+    assert ["safety", *members] == install_units.COMPOSED
+
+    # the command line passes every composed service's own --check-config
+    repo = Path(__file__).resolve().parents[1]
+    argv = [sys.executable, *exec_start.split()[1:],
+            "--check-config"]  # the last service's options; the container then checks them all
+    argv = [str(repo / "deploy" / "robot.example.toml") if a == "/etc/zagv/robot.toml" else a for a in argv]
+    result = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=repo,
+                            env={**os.environ, "PYTHONPATH": str(repo)})
+    assert result.returncode == 0 and "config ok" in result.stdout, result.stdout + result.stderr
+
+    dest = tmp_path / "units"
+    install_units.write_units(render_units(options(venv, compose=True, router="zenohd", zenohd=str(fake_zenohd))),
+                              dest)
+    verify = systemd_analyze_verify(dest)
+    output = verify.stdout + verify.stderr
+    assert verify.returncode == 0, output
+    assert not [line for line in output.splitlines() if "zagv" in line], output

@@ -25,6 +25,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
     p.add_argument("--drive-rt-priority", type=int, default=install_units.DEFAULT_DRIVE_RT_PRIORITY,
                    help="SCHED_FIFO priority of the drive (default %(default)s)")
+    p.add_argument("--compose", action="store_true",
+                   help=f"run {', '.join(install_units.COMPOSED)} in one process, zagv-components.service "
+                        "(composition: less memory and CPU; a crash restarts them together)")
     p.add_argument("--templates", help="folder of the *.in templates (default: deploy/systemd of this checkout)")
     p.set_defaults(func=run)
 

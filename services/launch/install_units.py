@@ -17,6 +17,8 @@ from pathlib import Path
 
 #: the services that get a unit, in start order after the router
 SERVICES = ["drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api", "vda5050"]
+#: ``--compose``: these run in one unit, ``zagv-components.service`` (the others need the LAN or a real-time CPU)
+COMPOSED = ["safety", "localization", "nav", "recorder"]
 DEFAULT_DEST = "/etc/systemd/system"
 DEFAULT_CONFIG = "/etc/zagv/robot.toml"
 DEFAULT_ZENOH_CONFIG = "/etc/zagv/zenoh/router-loopback.json5"
@@ -49,6 +51,8 @@ class UnitOptions:
     drive_rt_priority: int = DEFAULT_DRIVE_RT_PRIORITY
     #: the site server's units instead of a robot's
     site: bool = False
+    #: ``COMPOSED`` in one unit (zagv-components.service) instead of one unit each
+    compose: bool = False
 
     @property
     def python(self) -> Path:
@@ -60,12 +64,15 @@ def default_templates_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "deploy" / "systemd"
 
 
-def unit_names(site: bool = False) -> list[str]:
-    """Every unit rendered: the router, one per service, and the target (a site: its router, the fleet view and
-    zagv-site.target)."""
+def unit_names(site: bool = False, compose: bool = False) -> list[str]:
+    """Every unit rendered: the router, one per service (with ``compose``: ``COMPOSED`` as one
+    zagv-components.service), and the target (a site: its router, the fleet view and zagv-site.target)."""
     if site:
         return ["zagv-site-router.service", "zagv-fleet.service", "zagv-site.target"]
-    return ["zagv-router.service", *(f"zagv-{name}.service" for name in SERVICES), "zagv.target"]
+    services = [f"zagv-{name}.service" for name in SERVICES if not (compose and name in COMPOSED)]
+    if compose:
+        services.insert(1, "zagv-components.service")  # after the drive, where safety started
+    return ["zagv-router.service", *services, "zagv.target"]
 
 
 def check_options(opts: UnitOptions) -> list[str]:
@@ -120,7 +127,7 @@ def substitutions(opts: UnitOptions) -> dict[str, str]:
         "ROUTER_TYPE": router_type,
         "ROUTER_EXEC": router_exec,
         "ROUTER_WATCHDOG": router_watchdog,
-        "UNITS": " ".join(n for n in unit_names(opts.site) if not n.endswith(".target")),
+        "UNITS": " ".join(n for n in unit_names(opts.site, opts.compose) if not n.endswith(".target")),
     }
 
 
@@ -140,7 +147,7 @@ def render_units(opts: UnitOptions, templates: Path | None = None) -> dict[str, 
     templates = templates or default_templates_dir()
     values = substitutions(opts)
     units: dict[str, str] = {}
-    for name in unit_names(opts.site):
+    for name in unit_names(opts.site, opts.compose):
         path = templates / f"{name}.in"
         if not path.is_file():
             raise InstallError(f"template {path} not found (run from a zagv checkout or pass --templates DIR)")
@@ -166,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
     zenoh_config = args.zenoh_config or (DEFAULT_SITE_ZENOH_CONFIG if args.site else DEFAULT_ZENOH_CONFIG)
     opts = UnitOptions(venv=Path(args.venv), user=args.user, config=config, can_interface=args.can_interface,
                        router=router, zenohd=zenohd, zenoh_config=zenoh_config, drive_cpu=args.drive_cpu,
-                       drive_rt_priority=args.drive_rt_priority, site=args.site)
+                       drive_rt_priority=args.drive_rt_priority, site=args.site,
+                       compose=args.compose)
     try:
         warnings = check_options(opts)
         units = render_units(opts, Path(args.templates) if args.templates else None)
