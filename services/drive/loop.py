@@ -147,14 +147,18 @@ class SimTicker:
         return self._now
 
     def advance(self, t: float) -> None:
+        """Take sim time ``t``; the loop's thread is woken only when its next cycle is due (the clock ticks at
+        twice the loop's rate), on the first tick and when the simulator restarted."""
         with self._cond:
-            if t < self._now - 1.0:  # the simulator restarted
+            restarted = t < self._now - 1.0
+            if restarted:
                 self._next = None
             elif t < self._now:
                 return
             self._now = t
-            self._started = True
-            self._cond.notify_all()
+            first, self._started = not self._started, True
+            if first or restarted or self._next is None or t >= self._next:
+                self._cond.notify_all()
 
     def poke(self) -> None:
         with self._cond:
