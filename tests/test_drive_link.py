@@ -339,3 +339,31 @@ def test_a_simulator_restart_starts_a_new_epoch_in_the_loop(rig: Rig) -> None:
         assert all(m.traction_rpm == 0 for m in snaps[-1].result.motors), "the old run's command still drives"
     finally:
         loop.link.close()
+
+
+def test_the_sim_clock_wakes_the_control_loop_only_when_a_cycle_is_due() -> None:
+    """A 100 Hz clock drives a 50 Hz loop: every other tick finds no cycle due and must not wake its thread."""
+    from services.drive.loop import SimTicker
+
+    ticker = SimTicker(50.0)
+    woken_at: list[float] = []
+    notify_all = ticker._cond.notify_all
+
+    def counting_notify_all() -> None:
+        woken_at.append(ticker.now())
+        notify_all()
+
+    ticker._cond.notify_all = counting_notify_all  # type: ignore[method-assign]
+    stop = threading.Event()
+    ticker.advance(0.0)  # the first tick wakes the loop
+    assert ticker.wait(stop) == (0.0, True)
+    for k in range(1, 7):
+        ticker.advance(round(k * 0.01, 2))
+        if k % 2 == 0:  # a cycle is due at 0.02, 0.04, 0.06 s: the loop runs it
+            assert ticker.wait(stop) == (round(k * 0.01, 2), True)
+    assert woken_at == [0.0, 0.02, 0.04, 0.06]
+    ticker.advance(0.5)  # a clock that jumped back (a restarted simulator) wakes it at once
+    ticker.advance(5.0)
+    woken_at.clear()
+    ticker.advance(1.0)
+    assert woken_at == [1.0]
