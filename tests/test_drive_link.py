@@ -148,6 +148,29 @@ def test_loop_drives_and_odometry_follows_the_chassis(rig: Rig) -> None:
         loop.stop()
 
 
+def test_unchanged_commands_are_refreshed_not_resent_every_cycle(rig: Rig) -> None:
+    """RPDO1 is event-driven with an event timer: at rest the 200 Hz loop sends each node one frame per
+    ``rpdo_refresh_s`` (not 200 per second), and that keeps the controllers' watchdog fed."""
+    loop = make_loop(rig)
+    loop.start()
+    try:
+        wait_for_sync(lambda: loop.link_ok, timeout_s=5)
+        cycles_before = loop.stats.cycles
+        with rig.lock:
+            rig.rpdo_frames = 0
+        t0 = time.monotonic()
+        wait_for_sync(lambda: loop.stats.cycles - cycles_before >= 200, timeout_s=30)
+        with rig.lock:
+            frames = rig.rpdo_frames
+            tripped = [n.watchdog_tripped for n in rig.nodes]
+        elapsed_s = time.monotonic() - t0
+        refreshes = len(rig.nodes) * (elapsed_s / loop.settings.rpdo_refresh_s + 2)
+        assert 0 < frames <= refreshes < loop.stats.cycles - cycles_before
+        assert tripped == [False, False]
+    finally:
+        loop.stop()
+
+
 def test_non_finite_commands_never_reach_the_motors(rig: Rig) -> None:
     loop = make_loop(rig)
     loop.start()

@@ -18,9 +18,10 @@ PDO layout (protocols.md §1.9, with the paper's units: eq. 7 rpm, eq. 8 counts)
 
 TPDO1/2 are requested every ``tpdo_period_ms`` (20), TPDO3/4 every ``tpdo_slow_period_ms`` (100) with
 transmission type 255 and the event timer 0x1800+k.5 (on a real RoboteQ the rate may only be settable by CTPS).
-Every control cycle sends RPDO1 to each node, so the controller's command watchdog (``RWD``) stays fed; when the
-drive stops sending (crash, lost bus) the controller stops the motors by itself. E-stop ``!EX`` = SDO write 1 to
-0x200C.0, release ``!MG`` = SDO write 1 to 0x200D.0.
+RPDO1 goes to every node when the commands change and at least every ``rpdo_refresh_s`` (0.1 s), so the
+controller's command watchdog (``RWD``, 1000 ms) stays fed; when the drive stops sending (crash, lost bus) the
+controller stops the motors by itself. E-stop ``!EX`` = SDO write 1 to 0x200C.0, release ``!MG`` = SDO write 1 to
+0x200D.0.
 
 Threads: after start-up the control thread does all CAN I/O: ``poll`` dispatches received frames (TPDOs and
 heartbeats into per-node snapshots, SDO replies to a waiting SDO client), ``send`` writes RPDOs, ``health`` judges

@@ -12,6 +12,8 @@ from services.drive.canlink import LinkSettings
 from services.drive.kinematics import SteeringLimits
 
 _LINK = LinkSettings()  # the link's defaults, repeated nowhere else
+#: longest RPDO refresh period accepted: half the RoboteQ's default command watchdog (``RWD`` 1000 ms)
+MAX_RPDO_REFRESH_S = 0.5
 
 
 class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
@@ -40,7 +42,11 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     spin_s: float = 0.0003
     wake_on_command: bool = True
     realtime_priority: int = 0
-    rpdo_refresh_s: float = 0.0
+    #: RPDO1 goes out when the commands change, and otherwise every ``rpdo_refresh_s`` so that the controllers'
+    #: command watchdog (``RWD``, 1000 ms by default) stays fed: CANopen's event-driven PDO with an event timer.
+    #: 0 = every cycle. At 100 Hz on the simulated bus, sending unchanged frames every cycle was a third of the
+    #: control thread's CPU (two websocket writes per cycle)
+    rpdo_refresh_s: float = 0.1
     cmd_timeout_s: float = 0.2
     #: where velocity commands come from: ``safety/cmd_vel`` (the collision monitor's output: nothing reaches the
     #: wheels without passing it) or ``cmd_vel`` (straight from nav and the HMI; for a bench without a laser)
@@ -82,6 +88,9 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"drive.{name} must be a finite number > 0, got {value}")
+        if not (math.isfinite(self.rpdo_refresh_s) and 0.0 <= self.rpdo_refresh_s <= MAX_RPDO_REFRESH_S):
+            raise ValueError(f"drive.rpdo_refresh_s must be in [0, {MAX_RPDO_REFRESH_S}] s (well under the "
+                             f"controllers' command watchdog), got {self.rpdo_refresh_s}")
         if not 0.0 <= self.imu_yaw_weight <= 1.0:
             raise ValueError(f"drive.imu_yaw_weight must be in [0, 1], got {self.imu_yaw_weight}")
         if not self.steer_max_rad - self.steer_min_rad >= math.pi:

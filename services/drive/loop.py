@@ -223,7 +223,7 @@ class LoopSettings:
     imu_timeout_s: float = 0.2
     wake_on_command: bool = True
     realtime_priority: int = 0
-    rpdo_refresh_s: float = 0.0
+    rpdo_refresh_s: float = 0.1
 
 
 @dataclass(frozen=True)
