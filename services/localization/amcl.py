@@ -372,6 +372,9 @@ class ParticleFilter:
         self.w_fast = 0.0
         #: random-particle injection allowed (the driver turns it off while the filter is tracking)
         self.allow_injection = True
+        #: no injection at all, whatever the likelihood does (the at-rest settling after an initial pose: the pose
+        #: given is the prior, and a particle dropped on a look-alike place elsewhere would outvote it)
+        self.suppress_injection = False
         self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
                                     for k in range(m + 1)], dtype=np.int64)
         self._counts = np.arange(1, m + 1)
@@ -796,7 +799,7 @@ class ParticleFilter:
         self.rng.shuffle(picks)  # KLD takes a prefix: it must be a random subset, not the lowest indices
         new = self._poses_next[:m]
         np.take(self.poses, picks, axis=0, out=new)
-        w_diff = self.injection_probability()
+        w_diff = 0.0 if self.suppress_injection else self.injection_probability()
         if not self.allow_injection and w_diff < self.params.tracking_injection_min:
             w_diff = 0.0
         if w_diff > 0.0:
@@ -982,6 +985,9 @@ class Amcl:
         #: filter's estimate moves continuously, and one that jumps farther than ``lost_spread_m`` is lost
         self.jump_m = 0.0
         self.last_good: tuple[float, float, float] | None = None
+        #: the initial pose's Gaussian (mean (3,), covariance (3, 3)) the particles were drawn from; None after a
+        #: global localization. What the scans cannot fix (along a featureless corridor) only this prior fixes
+        self.initial_prior: tuple[np.ndarray, np.ndarray] | None = None
         self.lost_at: float | None = None
         self.lost_reason = ""
         self._scores: list[float] = []
@@ -1032,6 +1038,7 @@ class Amcl:
             raise ValueError(f"initial pose {pose} is not finite")
         self.pf.reseed()
         self.pf.init_gaussian(pose, covariance)
+        self.initial_prior = (np.array(pose, dtype=float), np.array(covariance, dtype=float).reshape(3, 3))
         self._reinitialised(stamp_s)
         self.uncertainty.reset(covariance)
         self.last_good = (float(pose[0]), float(pose[1]), float(pose[2]))
@@ -1046,6 +1053,7 @@ class Amcl:
         """Particles over all free space; ``stamp_s`` as in ``set_initial_pose``."""
         self.pf.reseed()
         self.pf.init_uniform()
+        self.initial_prior = None
         self._reinitialised(stamp_s)
         self.unconfirmed = True
         self._track_map_odom = None
