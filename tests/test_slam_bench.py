@@ -70,3 +70,16 @@ def test_amcl_on_real_scans_against_the_reference_map(corrected_dir, capsys):
     row = next(line for line in table.splitlines() if line.startswith("freiburg-101"))
     rms_m, lost = float(row.split()[4]), row.split()[-1]
     assert rms_m < 0.2 and lost == "0%", row
+
+
+def test_map_bench_set_overrides_slam_config_fields():
+    from services.localization.slam.map_bench import parse_overrides
+
+    assert parse_overrides(None) is None
+    config = parse_overrides(["submap_keyframes=30", "resolution_m=0.025", "calibrate_odometry=false"])
+    assert config is not None
+    assert (config.submap_keyframes, config.resolution_m, config.calibrate_odometry) == (30, 0.025, False)
+    assert config.levels == 3  # untouched fields keep their defaults
+    for bad in (["submap_keyframes"], ["no_such_field=1"], ["submap_keyframes=\"many\""]):
+        with pytest.raises(ValueError):
+            parse_overrides(bad)

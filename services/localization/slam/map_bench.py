@@ -13,7 +13,7 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
 ``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
 2°/m, jumps; see ``services/localization/slam/odometry_noise.py``); ``both`` runs clean then degraded and adds the
 ratio of the errors. ``--max-scans`` caps every log (a quick slice), ``--only`` keeps logs whose name contains one of
-the given words, ``--json`` writes the rows.
+the given words, ``--json`` writes the rows, ``--set KEY=VALUE`` (repeatable) overrides a ``SlamConfig`` field.
 """
 
 from __future__ import annotations
@@ -66,10 +66,35 @@ def has_reference(log_path: Path) -> bool:
     return "corrected" in log_path.name
 
 
+def parse_overrides(items: list[str] | None):
+    """``SlamConfig`` with ``KEY=VALUE`` overrides (values parsed as JSON, else kept as strings; the config's
+    types are checked), or None for the defaults."""
+    import msgspec
+
+    from services.localization.slam.mapper import SlamConfig
+
+    if not items:
+        return None
+    fields: dict[str, object] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set expects KEY=VALUE (got {item!r})")
+        try:
+            fields[key] = json.loads(text)
+        except json.JSONDecodeError:
+            fields[key] = text
+    merged = {**msgspec.structs.asdict(SlamConfig()), **fields}
+    try:
+        return msgspec.convert(merged, SlamConfig, strict=False)
+    except msgspec.ValidationError as exc:
+        raise ValueError(f"--set: {exc}") from exc
+
+
 def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | None = None,
-              reference: np.ndarray | None = None, log=None):
-    """One row for ``log_path`` with ``odometry`` 'clean' or 'degraded'; also returns the laser trajectory
-    (for use as the degraded run's closure reference)."""
+              reference: np.ndarray | None = None, log=None, config=None):
+    """One row for ``log_path`` with ``odometry`` 'clean' or 'degraded' (``config``: a ``SlamConfig``, None for
+    the defaults); also returns the laser trajectory (for use as the degraded run's closure reference)."""
     from services.localization.slam.evaluation import (
         aligned_trajectory_error,
         false_closures,
@@ -95,7 +120,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         noise = OdometryNoise.for_reference(seed)
     if noise is not None:
         log, _ = corrupt_odometry(log, noise)
-    run = run_slam(log)
+    run = run_slam(log, config)
     slam = run.slam
     stamps, poses = slam.trajectory()
     laser = scan_poses(poses, log.sensor_pose)
@@ -157,6 +182,11 @@ def run_bench(args: argparse.Namespace) -> int:
     if not logs:
         print(f"zagv map bench: no .clf, .bag or .log.gz log in {folder}", file=sys.stderr)
         return 2
+    try:
+        config = parse_overrides(args.set)
+    except ValueError as exc:
+        print(f"zagv map bench: {exc}", file=sys.stderr)
+        return 2
     settings = ["clean", "degraded"] if args.odometry == "both" else [args.odometry]
     rows: list[BenchResult] = []
     for path in logs:
@@ -164,7 +194,8 @@ def run_bench(args: argparse.Namespace) -> int:
         for setting in settings:
             reference: np.ndarray | None = clean_laser if setting == "degraded" else None
             try:
-                row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference)
+                row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference,
+                                        config=config)
             except (OSError, ValueError) as exc:
                 print(f"zagv map bench: {path.name}: {exc}", file=sys.stderr)
                 continue
@@ -187,6 +218,8 @@ def add_bench_parser(map_subparsers: argparse._SubParsersAction) -> argparse.Arg
     p.add_argument("--only", nargs="+", metavar="WORD", help="only logs whose file name contains one of these")
     p.add_argument("--max-scans", type=int, help="process only the first N scans of each log")
     p.add_argument("--json", help="also write the rows to this JSON file")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a SlamConfig field (repeatable; VALUE parsed as JSON), e.g. --set levels=4")
     p.set_defaults(func=run_bench)
     return p
 
