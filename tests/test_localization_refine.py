@@ -6,11 +6,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from services.common.map_io import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from services.localization.amcl import Amcl, AmclParams, ParticleFilter, ScanBeams, select_beams
 from services.localization.realmap import MOUNT, GridLaser
-from services.localization.refine import BeamModel, refine_pose
+from services.localization.refine import BeamModel, interpolated_distance, refine_pose
 
 RES = 0.05
 
@@ -188,3 +189,17 @@ def test_a_requested_update_is_consumed_whatever_the_verdict_and_can_be_withdraw
     amcl.process((0.0, 0.0, 0.0), dense_beams(laser, truth, params, params.max_beams), MOUNT, 5.1,
                  dense_beams(laser, truth, params, 541))
     assert amcl.updates == updates + 1 and amcl.last_refinement is not None and not amcl.refine_pending
+
+
+def test_an_endpoint_just_past_the_map_edge_scores_at_the_edge() -> None:
+    """A map whose free space reaches its edge (a cropped SLAM map): the edge is a surface, and a beam that range
+    noise puts a centimetre past it is a hit a centimetre off, not a beam ending nowhere (that pulled poses 3 cm
+    inwards on a real campus map)."""
+    field = np.full((5, 5), 0.1)
+    field[:, 4] = 0.0  # the last column of corners: the map's edge, a surface
+    x = np.array([0.2, 0.21, 0.25, 1.0])
+    d = interpolated_distance(field, (0.0, 0.0, 0.0), 0.05, x, np.full(4, 0.1), outside_m=2.0)
+    assert d[0] == pytest.approx(0.0, abs=1e-6)
+    assert d[1] == pytest.approx(0.01, abs=1e-6)
+    assert d[2] == pytest.approx(0.05, abs=1e-6)
+    assert d[3] == pytest.approx(0.8, abs=1e-6)  # far beyond: the distance to the edge, capped at outside_m

@@ -500,14 +500,20 @@ class ParticleFilter:
         ex = lx + ranges * np.cos(lth + bearings) - grid.origin[0]
         ey = ly + ranges * np.sin(lth + bearings) - grid.origin[1]
         c0, s0 = math.cos(grid.origin[2]), math.sin(grid.origin[2])
-        gx = np.floor((c0 * ex + s0 * ey) / grid.resolution + 0.5).astype(np.intp)
-        gy = np.floor((-s0 * ex + c0 * ey) / grid.resolution + 0.5).astype(np.intp)
+        u = (c0 * ex + s0 * ey) / grid.resolution
+        v = (-s0 * ex + c0 * ey) / grid.resolution
         dist = self.field.distance_m
-        inside = (gx >= 0) & (gx < dist.shape[1]) & (gy >= 0) & (gy < dist.shape[0])
+        # an endpoint past the map's edge is judged at the edge, plus its distance beyond it (the edge can be a
+        # surface, and range noise puts a beam that hit it a centimetre past it)
+        uc, vc = np.clip(u, 0.0, dist.shape[1] - 1.0), np.clip(v, 0.0, dist.shape[0] - 1.0)
+        beyond_m = np.hypot(u - uc, v - vc) * grid.resolution
+        gx = np.floor(uc + 0.5).astype(np.intp)
+        gy = np.floor(vc + 0.5).astype(np.intp)
+        inside = beyond_m <= self.params.match_distance_m
         hits = np.zeros(ranges.size, dtype=bool)
         unknown = np.zeros(ranges.size, dtype=bool)
         surface_m = np.minimum(self.field.obstacle_distance_m[gy[inside], gx[inside]],
-                               self.field.edge_distance_m[gy[inside], gx[inside]])
+                               self.field.edge_distance_m[gy[inside], gx[inside]]) + beyond_m[inside]
         hits[inside] = surface_m <= self.params.match_distance_m
         unknown[inside] = self.field.near_unknown[gy[inside], gx[inside]] & ~hits[inside]
         judged = int(ranges.size - np.count_nonzero(unknown))

@@ -76,21 +76,25 @@ class Refinement:
 def interpolated_distance(distance_m: np.ndarray, origin: tuple[float, float, float], resolution: float,
                           x: np.ndarray, y: np.ndarray, outside_m: float) -> np.ndarray:
     """Bilinear interpolation of a per-corner field (corner (i, j) at origin + R(yaw) (j, i) * resolution) at map
-    points; ``outside_m`` beyond the corners."""
+    points. Beyond the corners: the field at the nearest edge point plus the distance to it, at most ``outside_m``
+    (the map's edge can be a surface: a beam that ends a centimetre past it, by range noise, is a hit there, not a
+    beam ending nowhere; scoring it as the latter pulled poses 3 cm inwards on a map whose free space reaches its
+    edge). ``outside_m`` NaN: NaN beyond the corners."""
     ox, oy, oyaw = origin
     c0, s0 = math.cos(oyaw), math.sin(oyaw)
     dx, dy = x - ox, y - oy
     u = (c0 * dx + s0 * dy) / resolution
     v = (-s0 * dx + c0 * dy) / resolution
     h, w = distance_m.shape
-    inside = (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
-    u = np.clip(u, 0, w - 1.000001)
-    v = np.clip(v, 0, h - 1.000001)
-    j, i = u.astype(np.intp), v.astype(np.intp)
-    fu, fv = u - j, v - i
+    uc = np.clip(u, 0, w - 1.000001)
+    vc = np.clip(v, 0, h - 1.000001)
+    beyond_m = np.hypot(u - uc, v - vc) * resolution
+    j, i = uc.astype(np.intp), vc.astype(np.intp)
+    fu, fv = uc - j, vc - i
     d = ((distance_m[i, j] * (1 - fu) + distance_m[i, j + 1] * fu) * (1 - fv)
          + (distance_m[i + 1, j] * (1 - fu) + distance_m[i + 1, j + 1] * fu) * fv)
-    return np.where(inside, d, outside_m)
+    result: np.ndarray = np.where(beyond_m > 0.0, np.minimum(d + beyond_m, np.maximum(d, outside_m)), d)
+    return result
 
 
 def cells_set(mask: np.ndarray, origin: tuple[float, float, float], resolution: float, x: np.ndarray, y: np.ndarray
