@@ -339,6 +339,24 @@ class Estimate:
     spread_m: float = 0.0
 
 
+@dataclass(frozen=True)
+class RestMove:
+    """One Metropolis-Hastings move per particle in place of a sensor update, for scans taken at rest
+    (services/localization/settle.py): proposal x' = x + N(0, scale² Σ + diag(min_step_xy_m², min_step_xy_m²,
+    min_step_rad²)), Σ the particles' own covariance (the proposal takes the shape of the cloud: a few millimetres
+    across a corridor, decimetres along it), accepted with probability min(1, π(x')/π(x)) for π(x) ∝ p₀(x)·L(x),
+    L the scan's likelihood and p₀ the Gaussian N(prior_mean, prior_covariance) (flat when None). scale = 2.38/√3
+    is the random-walk Metropolis optimum for a 3-D Gaussian target."""
+
+    scale: float = 2.38 / math.sqrt(3.0)
+    min_step_xy_m: float = 0.002
+    min_step_rad: float = 0.002
+    prior_mean: np.ndarray | None = None
+    prior_covariance: np.ndarray | None = None
+    #: β in π ∝ p₀·Lᵝ
+    likelihood_power: float = 1.0
+
+
 class ParticleFilter:
     """Particles (x [m], y [m], theta [rad]) in the map frame with normalised weights; buffers preallocated."""
 
@@ -375,6 +393,8 @@ class ParticleFilter:
         #: no injection at all, whatever the likelihood does (the at-rest settling after an initial pose: the pose
         #: given is the prior, and a particle dropped on a look-alike place elsewhere would outvote it)
         self.suppress_injection = False
+        #: particles whose last ``rest_move`` proposal was accepted
+        self.rest_moves_accepted = 0
         self._kld_table = np.array([kld_limit(k, params.pf_err, params.pf_z, params.min_particles, m)
                                     for k in range(m + 1)], dtype=np.int64)
         self._counts = np.arange(1, m + 1)
@@ -613,6 +633,12 @@ class ParticleFilter:
             w_avg = math.exp((log_max + math.log(total)) / b)
         else:
             w_avg = (total - 1.0) / b
+        self._follow_likelihood_level(w_avg, tempered)
+        return w_avg
+
+    def _follow_likelihood_level(self, w_avg: float, tempered: bool) -> None:
+        """Move the recovery averages w_slow, w_fast towards this scan's per-beam likelihood ``w_avg``."""
+        p = self.params
         if tempered:
             # annealed weights say nothing of how well the map explains the scan: the recovery averages start
             # from the first plain update (else w_slow keeps the level of the uniform start, far below tracking,
@@ -623,6 +649,53 @@ class ParticleFilter:
         else:
             self.w_slow += p.recovery_alpha_slow * (w_avg - self.w_slow)
             self.w_fast += p.recovery_alpha_fast * (w_avg - self.w_fast)
+
+    def rest_move(self, ranges: np.ndarray, bearings: np.ndarray, mount: tuple[float, float, float],
+                  range_max: float, move: RestMove) -> float:
+        """A scan taken where the last one was (the robot at rest): one Metropolis-Hastings move per particle
+        towards p₀·L (``RestMove``), weights uniform after it. A sensor update would multiply the weights by L
+        once more: after k scans at rest the population follows Lᵏ, as if each scan of the same view were new
+        evidence, and sharpens onto whatever small bump of the likelihood a map's cells put along a direction the
+        scan cannot fix (a corridor: 0.1-0.2 m off, with a spread of millimetres). Here the target stays one scan's
+        worth of likelihood times the prior, whatever the number of scans. Returns the per-beam mean likelihood
+        (as ``sensor_update``) for the recovery averages."""
+        n = self.n
+        b = int(ranges.size)
+        if b == 0 or n == 0:
+            return 0.0
+        self.use_scan(ranges, bearings, mount, range_max)
+        current = self.poses[:n]
+        centred = current - current.mean(axis=0)
+        mean_heading = math.atan2(float(np.sin(current[:, 2]).mean()), float(np.cos(current[:, 2]).mean()))
+        centred[:, 2] = wrap_angle(current[:, 2] - mean_heading)
+        spread = (centred.T @ centred) / n * move.scale**2
+        spread += np.diag([move.min_step_xy_m**2, move.min_step_xy_m**2, move.min_step_rad**2])
+        try:
+            factor = np.linalg.cholesky(spread)
+        except np.linalg.LinAlgError:
+            factor = np.diag(np.sqrt(np.maximum(np.diag(spread), 0.0)))
+        proposed = current + self.rng.standard_normal((n, 3)) @ factor.T
+        proposed[:, 2] = wrap_angle(proposed[:, 2])
+        ll_current = self.scan_log_likelihood(current)
+        ll_proposed = self.scan_log_likelihood(proposed)
+        log_ratio = move.likelihood_power * (ll_proposed - ll_current)
+        if move.prior_mean is not None and move.prior_covariance is not None:
+            before = gaussian_log_density(current, move.prior_mean, move.prior_covariance)
+            after = gaussian_log_density(proposed, move.prior_mean, move.prior_covariance)
+            if before is not None and after is not None:
+                log_ratio += after - before
+        with np.errstate(invalid="ignore"):
+            accept = np.log(self.rng.random(n)) < log_ratio
+        current[accept] = proposed[accept]
+        ll = np.where(accept, ll_proposed, ll_current)
+        self._set_uniform_weights(n)
+        self.rest_moves_accepted = int(np.count_nonzero(accept))
+        if self.params.laser_model_type == "likelihood_field_prob":
+            top = float(ll.max())
+            w_avg = math.exp((top + math.log(float(np.mean(np.exp(ll - top))))) / b)
+        else:
+            w_avg = (float(np.mean(np.exp(ll))) - 1.0) / b
+        self._follow_likelihood_level(w_avg, False)
         return w_avg
 
     def _likelihood_sums(self, poses: np.ndarray, n: int, out: np.ndarray) -> None:
@@ -938,6 +1011,23 @@ class ScanBeams:
     range_max: float
 
 
+def gaussian_log_density(poses: np.ndarray, mean: np.ndarray, covariance: np.ndarray) -> np.ndarray | None:
+    """log N(x; μ, Σ) up to a constant, -½ dᵀ Σ⁻¹ d with d = x - μ (heading wrapped), for poses (N, 3); None when
+    Σ is not a usable covariance (not finite, or not positive definite once 1e-9 is added to its diagonal)."""
+    cov = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(cov)):
+        return None
+    try:
+        whitening = np.linalg.inv(np.linalg.cholesky(cov + np.eye(3) * 1e-9))  # L⁻¹, Σ = L Lᵀ
+    except np.linalg.LinAlgError:
+        return None
+    d = poses[:, :3] - mean
+    d[:, 2] = wrap_angle(d[:, 2])
+    whitened = d @ whitening.T
+    result: np.ndarray = -0.5 * np.einsum("ij,ij->i", whitened, whitened)
+    return result
+
+
 def select_beams(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,
                  range_max: float, params: AmclParams, max_beams: int | None = None) -> ScanBeams:
     """Subsample a scan (Nav2's step, for ``max_beams``: default the params') and keep finite returns inside
@@ -1109,12 +1199,14 @@ class Amcl:
         self.pf.allow_injection = state != "tracking" or self.params.inject_while_tracking
 
     def process(self, odom_pose: tuple[float, float, float], beams: ScanBeams,
-                mount: tuple[float, float, float], stamp: float | None = None, dense: ScanBeams | None = None
-                ) -> bool:
+                mount: tuple[float, float, float], stamp: float | None = None, dense: ScanBeams | None = None,
+                rest_move: RestMove | None = None) -> bool:
         """One scan at ``stamp`` (s; None: DEFAULT_SCAN_PERIOD_S after the last): motion + sensor update
         (+ resampling) when the gates open, then the verdict; returns whether the filter updated. ``dense``: every
-        valid beam of the scan, for a pending refinement. A scan stamped before the last initial pose or global
-        request is ignored (returns False)."""
+        valid beam of the scan, for a pending refinement. ``rest_move``: the robot has not moved since the last
+        update; that update is a Metropolis-Hastings move (``ParticleFilter.rest_move``) instead of a sensor update
+        and resampling (not while annealing). A scan stamped before the last initial pose or global request is
+        ignored (returns False)."""
         if stamp is not None and stamp < self._scans_from_s:
             self.stale_scans_ignored += 1
             return False
@@ -1137,8 +1229,13 @@ class Amcl:
         if update:
             self.force_update = False
             self._last_update_at = self._now
-            self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
-            self.resample_count += 1
+            moved_at_rest = rest_move is not None and self.pf.temperature <= 1.0 and self.estimate is not None
+            if moved_at_rest:
+                assert rest_move is not None
+                self.pf.rest_move(beams.ranges, beams.bearings, mount, beams.range_max, rest_move)
+            else:
+                self.pf.sensor_update(beams.ranges, beams.bearings, mount, beams.range_max)
+                self.resample_count += 1
             # the weighted set carries this scan's evidence; resampling only adds noise to its mean
             self.estimate = self.pf.estimate()
             self.spread_m = self.estimate.spread_m
@@ -1146,7 +1243,7 @@ class Amcl:
             if self.map_odom is not None:  # how far the estimate moved from where odometry carried the last one
                 carried = compose(self.map_odom, odom_pose)
                 self.jump_m = math.hypot(self.estimate.pose[0] - carried[0], self.estimate.pose[1] - carried[1])
-            if self.resample_count % self.params.resample_interval == 0:
+            if not moved_at_rest and self.resample_count % self.params.resample_interval == 0:
                 self.pf.resample()
             if self.refine_pending and dense is not None:
                 self.refine_pending = False
@@ -1273,6 +1370,13 @@ class Amcl:
             return
         limit = p.global_recovery_s if self._stage >= p.local_recovery_attempts else p.recovery_attempt_s
         if now - self._stage_started_at < limit:
+            return
+        if (self._stage < 0 and self.state == "localizing" and self.initial_prior is not None
+                and len(self._scores) >= p.match_window and self.match_score >= p.track_score):
+            # the scans fit the pose given; they only do not narrow it down (a corridor whose ends the lidar does
+            # not see): that is no evidence of a wrong pose, and a search of the whole map would find look-alikes
+            self.reason = (f"the scans fit the pose given but do not fix it (spread {self.spread_m:.2f} m): "
+                           "move the robot, or give the pose more precisely")
             return
         if self._stage < 0:
             if self.state != "lost":  # an initial pose (or a global localization) that never converged: it was wrong
