@@ -70,7 +70,7 @@ def _refine(grid: OccupancyMap, truth, start, cov_diag, seed: int):
     beams = dense_beams(laser, truth, params, 541)
     model = BeamModel(params.z_hit, params.z_rand / beams.range_max, params.sigma_hit, params.laser_likelihood_max_dist)
     return refine_pose(pf.field.exact_distance_m(), grid.origin, grid.resolution, model, start,
-                       np.diag(cov_diag), beams.ranges, beams.bearings, MOUNT, occupied=pf.occupied)
+                       np.diag(cov_diag), beams.ranges, beams.bearings, MOUNT, occupied=pf.field.occupied)
 
 
 def test_refinement_finds_the_pose_a_wall_thickness_away():
@@ -138,25 +138,70 @@ def test_yawed_map_is_resampled_onto_the_axis_aligned_raster():
     assert math.isclose(pf.grid.origin[0], 0.0, abs_tol=1e-6) and math.isclose(pf.grid.origin[1], 0.0, abs_tol=1e-6)
 
 
-def test_beams_that_reach_their_end_through_a_wall_score_as_misses():
-    """Facing a 2-cell wall head-on: a pose one wall thickness closer puts every endpoint on the wall's far face,
-    a hit for the distance field alone; the pass-through check scores it far below the truth."""
+@pytest.mark.parametrize(("map_surface", "wall_cells"), [("face", 2), ("cell", 3)])
+def test_beams_that_reach_their_end_through_a_wall_score_as_misses(map_surface: str, wall_cells: int):
+    """Facing a thick wall head-on: a pose one wall thickness closer puts every endpoint on the wall's far face,
+    a hit for the distance field alone; the pass-through check scores it far below the truth. With ``cell`` the
+    check counts the cells behind a wall's first layer only: on a map built from scans a wall two cells thick is
+    the band its surface's hits spread over."""
     from services.localization.refine import log_likelihood
 
-    grid = hall(edge_unknown=False, wall_cells=2)
+    grid = hall(edge_unknown=False, wall_cells=wall_cells)
     params = AmclParams()
     pf = ParticleFilter(grid, params)
-    truth = (11.0, 3.0, 0.0)  # 0.5 m from the inner face of the 2-cell east wall (x = 12.5 .. 12.6)
+    truth = (11.0, 3.0, 0.0)  # 0.5 m from the inner face of the east wall (x = 12.5 ..)
     laser = GridLaser(grid, beams=541, fov_rad=math.radians(30.0), rng=np.random.default_rng(8))
     beams = dense_beams(laser, truth, params, 541)
     model = BeamModel(params.z_hit, params.z_rand / 20.0, params.sigma_hit, params.laser_likelihood_max_dist)
-    poses = np.array([truth, (truth[0] + 2 * RES, truth[1], truth[2])])
-    args = (pf.field.exact_distance_m(), grid.origin, grid.resolution, model, poses, beams.ranges, beams.bearings,
-            MOUNT)
+    poses = np.array([truth, (truth[0] + wall_cells * RES, truth[1], truth[2])])
+    distance, walls = pf.field.refinement_fields(map_surface)
+    args = (distance, grid.origin, grid.resolution, model, poses, beams.ranges, beams.bearings, MOUNT)
     plain = log_likelihood(*args)
-    checked = log_likelihood(*args, occupied=pf.occupied)
-    assert plain[1] > plain[0] - 0.1 * abs(plain[0])  # the field alone barely tells them apart
+    checked = log_likelihood(*args, occupied=walls)
+    assert plain[1] > plain[0] - 0.3 * abs(plain[0])  # the field alone tells them apart poorly
     assert checked[1] < checked[0] - 100.0
+
+
+def test_the_refinement_is_unbiased_on_a_map_built_from_scans():
+    """A map built like SLAM builds one (``OccupancyGrid``: each hit marks the cell it fell in) from scans of the
+    rendered hall at the true poses: the surface lies inside the first layer of wall cells, not on its free face.
+    Refined from the truth with ``map_surface = "cell"``, the pose stays within 1 cm (``face`` is printed for
+    comparison)."""
+    from services.common.se2 import transform_points
+    from services.localization.slam.occupancy import OccupancyGrid
+
+    world = hall(edge_unknown=False, wall_cells=3)
+    laser = GridLaser(world, rng=np.random.default_rng(3))
+    route = [(3.0 + 0.25 * k, 2.0 + 1.5 * (k % 2), 0.4 * k) for k in range(30)]
+    clouds = []
+    for pose in route:
+        r = laser.scan(pose)
+        ok = np.isfinite(r)
+        hits = np.column_stack([r[ok] * np.cos(laser.angles[ok]), r[ok] * np.sin(laser.angles[ok])])
+        clouds.append(transform_points(np.asarray(MOUNT), hits))
+    everything = np.concatenate([transform_points(np.asarray(p), c) for p, c in zip(route, clouds)])
+    built = OccupancyGrid.covering(everything.min(axis=0), everything.max(axis=0), RES)
+    built.origin_xy_m = built.origin_xy_m + 0.013  # a lattice that does not line up with the world's
+    for pose, cloud in zip(route, clouds):
+        built.insert_scan(np.asarray(pose), np.asarray(MOUNT[:2]), cloud)
+    image = built.trinary_image()[::-1]
+    data = np.where(image == 0, OCCUPIED, np.where(image == 254, FREE, UNKNOWN)).astype(np.int8)
+    grid = OccupancyMap(data, RES, (float(built.origin_xy_m[0]), float(built.origin_xy_m[1]), 0.0))
+    params = AmclParams()
+    pf = ParticleFilter(grid, params)
+    model = BeamModel(params.z_hit, params.z_rand / 20.0, params.sigma_hit, params.laser_likelihood_max_dist)
+    check = GridLaser(world, rng=np.random.default_rng(4))
+    errors: dict[str, list[float]] = {"face": [], "cell": []}
+    for truth in [(3.5, 2.0, 0.0), (8.0, 3.2, 2.0), (11.5, 2.0, -0.7), (5.5, 4.3, 1.2)]:
+        beams = dense_beams(check, truth, params, 541)
+        for surface, found in errors.items():
+            distance, walls = pf.field.refinement_fields(surface)
+            r = refine_pose(distance, grid.origin, grid.resolution, model, truth,
+                            np.diag([0.03 ** 2, 0.03 ** 2, 0.01 ** 2]), beams.ranges, beams.bearings, MOUNT,
+                            occupied=walls)
+            found.append(math.hypot(r.pose[0] - truth[0], r.pose[1] - truth[1]) if r.used else math.inf)
+    print(f"refined from the truth on a map built from scans: face {errors['face']}, cell {errors['cell']}")
+    assert max(errors["cell"]) < 0.01, errors
 
 
 def test_a_requested_update_is_consumed_whatever_the_verdict_and_can_be_withdrawn():

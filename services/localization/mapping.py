@@ -421,7 +421,8 @@ class ModeSwitcher:
             load_map(path)
         except MapError as exc:
             return Reply(ok=False, message=f"cannot navigate: {exc}")
-        changes: dict = {"map_yaml": str(path), "mode": "navigation"}
+        # a map in the maps folder was built from scans: its walls' surfaces lie inside their first layer of cells
+        changes: dict = {"map_yaml": str(path), "mode": "navigation", "map_surface": "cell"}
         if pose is not None:  # the saved map shares the mapping frame: AMCL starts where SLAM left the robot
             changes.update(initial_pose_x=pose[0], initial_pose_y=pose[1], initial_pose_yaw=pose[2],
                            set_initial_pose=True, initialize_at_saved_pose=False,
