@@ -227,16 +227,26 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
         assert ramp, "the drive never began to decelerate after cmd_vel ended"
         assert ramp[0] - sent_lo >= cmd_timeout - 0.03, f"deceleration began {ramp[0] - sent_lo:.2f} s after the cmd"
         assert ramp[0] - sent_hi <= cmd_timeout + 0.06, f"deceleration began {ramp[0] - sent_hi:.2f} s after the cmd"
-        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs. Both
-        # ends are measured on one timeline, the simulator's ground truth (the drive's stamps follow its own view of
-        # the sim clock, which runs ahead of the truth's while the simulator is starved of CPU)
+        # a controlled deceleration (not a step to zero), finished in the time the acceleration limit needs. The
+        # drive is judged on its own commands and its own timeline (``speed_cmd_mps`` of its wheel states, stamped
+        # with its view of the sim clock; ``smooth`` above made sure it did not stall). The robot's ground truth must
+        # follow as a ramp, never faster; how much longer it takes is the share of the stand-ins for hardware (a
+        # starved simulated CAN bus or simulator takes in the drive's frames late while the physics steps on: the
+        # truth took 0.74 s instead of 0.38 s once beside a CPU hog), so it is bounded by the window, not the limit.
+        expected = decel * (0.195 - 0.005) / 0.2
+        commanded = [(w.stamp, abs(w.modules[0].speed_cmd_mps)) for w in d.wheel_log if w.stamp > sent_lo]
+        cmd_slowing = [t for t, v in commanded if v < 0.195]
+        cmd_stopped = [t for t, v in commanded if v < 0.005]
+        assert cmd_slowing and cmd_stopped, "the drive never commanded the wheels to a stop after cmd_vel ended"
+        cmd_took = cmd_stopped[0] - cmd_slowing[0]
+        assert expected - 0.1 <= cmd_took <= expected + 0.1, (
+            f"the drive took {cmd_took:.2f} s (sim) to ramp its wheel command from 0.195 to 0.005 m/s")
         speeds = [(g.stamp, math.hypot(g.twist.vx, g.twist.vy)) for g in d.truth_log if g.stamp > sent_lo]
         slowing = [t for t, v in speeds if v < 0.195]
         stopped = [t for t, v in speeds if v < 0.005]
         assert slowing and stopped, "the robot never stopped after cmd_vel ended"
-        expected = decel * (0.195 - 0.005) / 0.2
         took = stopped[0] - slowing[0]
-        assert expected - 0.1 <= took <= expected + 0.1, f"took {took:.2f} s (sim) to slow from 0.195 to 0.005 m/s"
+        assert took >= expected - 0.1, f"the robot stopped in {took:.2f} s (sim): a step, not a ramp"
         break
     else:
         pytest.fail("the cmd_vel stream or the drive stuttered in every attempt (machine overloaded)")
