@@ -163,6 +163,14 @@ class Driver:
                       message="the teleport never showed in sim/ground_truth")
 
 
+def slow_down_s(speeds: list[tuple[float, float]]) -> float | None:
+    """Time from the first speed below 0.195 m/s to the first below 0.005 m/s in (stamp, speed) samples; None when
+    either never happens."""
+    slowing = [t for t, v in speeds if v < 0.195]
+    stopped = [t for t, v in speeds if v < 0.005]
+    return stopped[0] - slowing[0] if slowing and stopped else None
+
+
 @pytest.mark.slow
 def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory) -> None:
     stack = stack_factory(services=["sim", "drive"], world="empty_room", speed=SPEED).start()
@@ -234,18 +242,12 @@ def test_square_sideways_spin_and_cmd_timeout_against_ground_truth(stack_factory
         # starved simulated CAN bus or simulator takes in the drive's frames late while the physics steps on: the
         # truth took 0.74 s instead of 0.38 s once beside a CPU hog), so it is bounded by the window, not the limit.
         expected = decel * (0.195 - 0.005) / 0.2
-        commanded = [(w.stamp, abs(w.modules[0].speed_cmd_mps)) for w in d.wheel_log if w.stamp > sent_lo]
-        cmd_slowing = [t for t, v in commanded if v < 0.195]
-        cmd_stopped = [t for t, v in commanded if v < 0.005]
-        assert cmd_slowing and cmd_stopped, "the drive never commanded the wheels to a stop after cmd_vel ended"
-        cmd_took = cmd_stopped[0] - cmd_slowing[0]
+        cmd_took = slow_down_s([(w.stamp, abs(w.modules[0].speed_cmd_mps)) for w in d.wheel_log if w.stamp > sent_lo])
+        assert cmd_took is not None, "the drive never commanded the wheels to a stop after cmd_vel ended"
         assert expected - 0.1 <= cmd_took <= expected + 0.1, (
             f"the drive took {cmd_took:.2f} s (sim) to ramp its wheel command from 0.195 to 0.005 m/s")
-        speeds = [(g.stamp, math.hypot(g.twist.vx, g.twist.vy)) for g in d.truth_log if g.stamp > sent_lo]
-        slowing = [t for t, v in speeds if v < 0.195]
-        stopped = [t for t, v in speeds if v < 0.005]
-        assert slowing and stopped, "the robot never stopped after cmd_vel ended"
-        took = stopped[0] - slowing[0]
+        took = slow_down_s([(g.stamp, math.hypot(g.twist.vx, g.twist.vy)) for g in d.truth_log if g.stamp > sent_lo])
+        assert took is not None, "the robot never stopped after cmd_vel ended"
         assert took >= expected - 0.1, f"the robot stopped in {took:.2f} s (sim): a step, not a ramp"
         break
     else:
