@@ -20,7 +20,7 @@ from services.localization.slam.visibility import ViewProfiles
 from services.localization.synthetic import Laser
 
 MOUNT = np.array([0.3, 0.0, 0.0])
-VISIBILITY_MARGIN_M = 0.15  # the opt-in visibility filter (SlamConfig.match_visibility_margin_m)
+VISIBILITY_MARGIN_M = 0.15  # a visibility filter wider than the default (SlamConfig.match_visibility_margin_m)
 
 
 def _world(free: list[list[float]]) -> World:
@@ -174,8 +174,8 @@ def test_points_the_submap_never_saw_no_longer_bias_the_match_along_a_corridor()
 
 def test_corridor_route_of_the_built_map_scenario_does_not_drift_along_the_corridor():
     """The built-map scenario's jog route (lobby, the 23 m main corridor, the east hall, the north corridor) in the
-    corridor world with the simulator's near-perfect odometry: with the opt-in visibility filter the SLAM pose at the
-    end of the main corridor stays within a few centimetres of the truth along it (0.15 m without it)."""
+    corridor world with the simulator's near-perfect odometry: with the default visibility refinement the SLAM pose
+    at the end of the main corridor stays within a few centimetres of the truth along it (0.15 m without it)."""
     from services.localization.slam.live import LiveMapper
     from services.localization.synthetic import Odometry, route
 
@@ -184,7 +184,7 @@ def test_corridor_route_of_the_built_map_scenario_does_not_drift_along_the_corri
            (23.5, 7.0, 1.57), (23.5, 13.4, 1.57)]
     truth = list(route(jog, step_m=0.02, step_rad=0.04))
     odometry = Odometry(truth[0], scale_error=0.0, noise_frac=0.002)
-    mapper = LiveMapper(SlamConfig(match_visibility_margin_m=VISIBILITY_MARGIN_M), start_pose=truth[0])
+    mapper = LiveMapper(SlamConfig(), start_pose=truth[0])
     corridor_end = None
     for k, pose in enumerate(truth):
         odom = np.array(odometry.step(pose) if k else odometry.pose)
