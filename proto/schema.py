@@ -7,6 +7,7 @@ column count are recorded under ``x-array``.
 
 from __future__ import annotations
 
+import inspect
 import json
 import sys
 from pathlib import Path
@@ -22,6 +23,10 @@ def build() -> dict[str, str]:
     """File name -> JSON text for every schema file."""
     types = all_types()
     _, components = msgspec.json.schema_components(types, ref_template="#/$defs/{name}")
+    for component in components.values():
+        # docstrings as ``inspect.cleandoc`` gives them: msgspec 0.23 dedents them, earlier releases did not
+        if "description" in component:
+            component["description"] = inspect.cleandoc(component["description"])
     for t in types:
         if t.ARRAY_FIELDS and t.__name__ in components:
             for field, (dtype, cols) in t.ARRAY_FIELDS.items():
