@@ -70,7 +70,7 @@ from services.common.se2 import between, compose, inverse, transform_points, wra
 from . import search_gate
 from .constraint import FULLY_CONSTRAINED, MatchConstraint, match_constraint
 from .likelihood import MultiResolutionGrid
-from .matcher import MatchResult, correlative_search, refine, score, translation_curvature
+from .matcher import MatchResult, correlative_search, refine, translation_curvature
 from .occupancy import OccupancyGrid
 from .odometry_calibration import OdometryCalibration
 from .pose_graph import PoseGraph
@@ -433,32 +433,31 @@ class GraphSlam:
         return self._odom_prior if chosen is first else self._motion_prior(step)
 
     def _without_unseen(self, result: MatchResult, points: np.ndarray, predicted: np.ndarray,
-                        prior_information: np.ndarray | None) -> MatchResult:
-        """``result`` refined again on the finest level from the scan points the submap has seen (``visibility.py``,
-        within ``match_visibility_margin_m``), under the same odometry prior (none: ``prior_information`` None).
+                        prior_information: np.ndarray | None) -> np.ndarray | None:
+        """The pose of ``result`` refined again on the finest level from the scan points the submap has seen
+        (``visibility.py``, within ``match_visibility_margin_m``), under the same odometry prior (none:
+        ``prior_information`` None).
 
         A point on a surface revealed since the submap's keyframes looked (a recess's back wall coming out of its
         jamb's shadow, the wall behind a pillar) lies just beyond the end of what the submap holds, and the field
         pulls it back onto the seen part: against the direction of travel, so each match comes out a few millimetres
         long along a corridor. The refinement starts from the match of all points and is kept only within one cell
         and ``visibility_max_turn_rad`` of it: it removes a sub-cell bias, and the seen points alone, after a long
-        step, can settle in a wrong optimum that the whole scan rules out. Unchanged when too few points were seen
-        (a turn into a new view)."""
+        step, can settle in a wrong optimum that the whole scan rules out. None when it is not kept, when every
+        point was seen, or when too few were (a turn into a new view)."""
         c = self.config
         if c.match_visibility_margin_m <= 0.0 or self._submap_views is None or self._submap is None:
-            return result
+            return None
         seen = self._submap_views.seen(transform_points(predicted, points), c.match_visibility_margin_m)
         if seen.all() or seen.sum() < max(20, len(points) // 2):
-            return result
+            return None
         seen_points = points[seen]
         finest = MultiResolutionGrid(self._submap.levels[:1])
-        again = refine(finest, seen_points, result.pose, prior_pose=None if prior_information is None else predicted,
-                       prior_information=prior_information, point_weights=self._point_weights(seen_points))
-        moved_m = float(np.hypot(*(again.pose[:2] - result.pose[:2])))
-        turned_rad = abs(float(wrap_angle(again.pose[2] - result.pose[2])))
-        if moved_m > c.resolution_m or turned_rad > c.visibility_max_turn_rad:
-            return result
-        return MatchResult(again.pose, score(self._submap.levels[0], points, again.pose), again.hessian)
+        pose = refine(finest, seen_points, result.pose, prior_pose=None if prior_information is None else predicted,
+                      prior_information=prior_information, point_weights=self._point_weights(seen_points)).pose
+        moved_m = float(np.hypot(*(pose[:2] - result.pose[:2])))
+        turned_rad = abs(float(wrap_angle(pose[2] - result.pose[2])))
+        return None if moved_m > c.resolution_m or turned_rad > c.visibility_max_turn_rad else pose
 
     def _constraint_at(self, points: np.ndarray, pose: np.ndarray) -> MatchConstraint:
         """What a match of ``points`` at ``pose`` fixes, from the submap's translation curvature there."""
@@ -474,16 +473,17 @@ class GraphSlam:
         weakest direction less than ``visibility_below_ratio`` as well as its strongest is first refined without the
         points the submap never saw (``_without_unseen``, under ``prior_information``)."""
         assert self._submap is not None
-        self.last_constraint = self._constraint_at(points, result.pose)
+        pose = result.pose
+        self.last_constraint = self._constraint_at(points, pose)
         if self.last_constraint.weakest_ratio < self.config.visibility_below_ratio:
-            again = self._without_unseen(result, points, predicted, prior_information)
-            if again is not result:
-                result = again
-                self.last_constraint = self._constraint_at(points, result.pose)
+            refined = self._without_unseen(result, points, predicted, prior_information)
+            if refined is not None:
+                pose = refined
+                self.last_constraint = self._constraint_at(points, pose)
         if not self.last_constraint.degenerate:
-            return result.pose
+            return pose
         self.degenerate_matches += 1
-        return self.last_constraint.remap(result.pose, predicted)
+        return self.last_constraint.remap(pose, predicted)
 
     def _sequential_information(self, edge_m: float = 0.0) -> np.ndarray:
         """Scan-match information over an edge of ``edge_m``: the configured one where the match fixes a
