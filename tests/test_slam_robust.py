@@ -125,6 +125,25 @@ def test_pending_closure_needs_a_consistent_partner():
     assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
 
 
+def test_a_small_correction_is_trusted_only_where_the_graph_is_sure():
+    """A closure that asks the graph for 0.2 m is accepted at once when k is known to 0.1 m relative to j; after a
+    long open loop (σ_xy(Σ_jk) = 2 m) the same small correction is no evidence (a look-alike place can agree with a
+    drifted graph) and it must be confirmed like a large one."""
+    slam = _chain_graph(40)
+    k, j = 39, 0
+    assert slam._trusted(j, k, 0.2, 0.01)  # Σ_k = 0: the graph is sure
+    assert not slam._trusted(j, k, 0.4, 0.01) and not slam._trusted(j, k, 0.2, 0.08)  # too large a correction
+    slam.drift_covariance = np.diag([0.1**2, 0.1**2, 1e-4])
+    assert slam._trusted(j, k, 0.2, 0.01)
+    slam.drift_covariance = np.diag([2.0**2, 0.5**2, 1e-3])
+    assert not slam._trusted(j, k, 0.2, 0.01)
+    # relative to a keyframe on the same chain since the anchor, only the edges between them count
+    slam._drift_covariances[k - 2] = slam.drift_covariance - np.diag([0.05**2, 0.05**2, 0.0])
+    assert slam._trusted(k - 2, k, 0.2, 0.01)
+    slam.config.loop_trusted_sigma_xy_m = 3.0
+    assert slam._trusted(j, k, 0.2, 0.01)
+
+
 def test_closures_of_different_revisits_do_not_confirm_each_other():
     """Two wrong closures to places far apart along the path agree within the tolerance a long cycle allows
     (0.3 m + 0.01 m per m of path: 0.54 m over 24 m) but are no evidence for each other: only a closure of the same
