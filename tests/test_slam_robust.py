@@ -125,6 +125,19 @@ def test_pending_closure_needs_a_consistent_partner():
     assert lonely.state == "rejected" and lonely.reason == "no consistent closure"
 
 
+def test_closures_that_disagree_by_more_than_their_own_error_do_not_confirm_each_other():
+    """Two closures of one revisit (1 m of path apart) that disagree by 0.25 m: each is stated to 0.03 m, so their
+    cycle should close to about 0.04 m; they are no evidence for each other (two look-alike matches, each 0.3-0.5 m
+    off, confirmed each other at the old 0.3 m tolerance). 0.1 m apart they agree."""
+    slam = _chain_graph(40)
+    poses = slam.graph.poses()
+    a = LoopClosure(0, 36, compose(between(poses[0], poses[36]), np.array([0.4, 0.0, 0.0])), 0.4)
+    far = LoopClosure(0, 37, compose(between(poses[0], poses[37]), np.array([0.4, 0.25, 0.0])), 0.5)
+    near = LoopClosure(0, 37, compose(between(poses[0], poses[37]), np.array([0.4, 0.1, 0.0])), 0.4)
+    assert not slam._consistent(a, far, poses)
+    assert slam._consistent(a, near, poses)
+
+
 def test_a_small_correction_is_trusted_only_where_the_graph_is_sure():
     """A closure that asks the graph for 0.2 m is accepted at once when k is known to 0.1 m relative to j; after a
     long open loop (σ_xy(Σ_jk) = 2 m) the same small correction is no evidence (a look-alike place can agree with a
@@ -146,12 +159,12 @@ def test_a_small_correction_is_trusted_only_where_the_graph_is_sure():
 
 def test_closures_of_different_revisits_do_not_confirm_each_other():
     """Two wrong closures to places far apart along the path agree within the tolerance a long cycle allows
-    (0.3 m + 0.01 m per m of path: 0.54 m over 24 m) but are no evidence for each other: only a closure of the same
+    (0.15 m + 0.01 m per m of path: 0.39 m over 24 m) but are no evidence for each other: only a closure of the same
     revisit, within ``loop_consistency_max_path_m`` of path, can confirm one."""
     slam = _chain_graph(80)
     poses = slam.graph.poses()
     a = LoopClosure(0, 60, compose(between(poses[0], poses[60]), np.array([0.3, 0.2, 0.0])), 0.5)
-    b = LoopClosure(12, 72, compose(between(poses[12], poses[72]), np.array([0.6, 0.45, 0.0])), 0.8)
+    b = LoopClosure(12, 72, compose(between(poses[12], poses[72]), np.array([0.45, 0.35, 0.0])), 0.6)
     assert slam._path_length(a.to, b.to) + slam._path_length(a.from_, b.from_) == pytest.approx(24.0)
     assert not slam._consistent(a, b, poses)
     slam.config.loop_consistency_max_path_m = 30.0
