@@ -652,9 +652,7 @@ class GraphSlam:
         n_sigma = c.loop_search_sigmas
         sigma_xy = sigma_theta = np.zeros(len(dist))
         if n_sigma > 0:
-            sigma_xy, sigma_theta = search_gate.relative_sigmas(
-                self.drift_covariance, poses[k, :2], self._anchor_keyframe, np.array(self._drift_covariances),
-                np.array(self._drift_xy_m), np.array(self._drift_anchors))
+            sigma_xy, sigma_theta = self._relative_sigmas(k, np.arange(len(dist)))
         radius = np.clip(c.loop_search_radius_m + n_sigma * sigma_xy, c.loop_search_radius_m,
                          max(c.loop_search_max_radius_m, c.loop_search_radius_m))
         dist[dist > radius] = np.inf
@@ -729,12 +727,16 @@ class GraphSlam:
         c = self.config
         if correction_m > c.loop_trusted_xy_m or turn_rad > c.loop_trusted_theta_rad:
             return False
-        if not np.isfinite(c.loop_trusted_sigma_xy_m):
-            return True
-        sigma_xy, _ = search_gate.relative_sigmas(
-            self.drift_covariance, self.graph.pose(k)[:2], self._anchor_keyframe, self._drift_covariances[j][None],
-            self._drift_xy_m[j][None], np.array([self._drift_anchors[j]]))
+        sigma_xy, _ = self._relative_sigmas(k, np.array([j]))
         return bool(sigma_xy[0] <= c.loop_trusted_sigma_xy_m)
+
+    def _relative_sigmas(self, k: int, keyframes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(σ_xy, σ_θ) of Σ_jk for each j in ``keyframes``: the newest keyframe ``k`` relative to j
+        (``search_gate.relative_sigmas`` on the drift kept per keyframe)."""
+        return search_gate.relative_sigmas(
+            self.drift_covariance, self.graph.pose(k)[:2], self._anchor_keyframe,
+            np.array(self._drift_covariances)[keyframes], np.array(self._drift_xy_m)[keyframes],
+            np.array(self._drift_anchors)[keyframes])
 
     def _degenerate(self, curvature: np.ndarray) -> bool:
         c = self.config
