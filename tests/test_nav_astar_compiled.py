@@ -88,3 +88,13 @@ def test_warehouse_workload_matches_the_reference_loop_and_the_published_cost() 
     assert len(compiled.cells) == 2913
     assert compiled.expanded == python.expanded and compiled.cost == python.cost
     np.testing.assert_array_equal(compiled.cells, python.cells)
+
+
+@pytest.mark.parametrize("weight", [-0.5, float("nan"), float("inf")])
+def test_a_cost_weight_that_would_shorten_steps_is_refused(weight: float) -> None:
+    with pytest.raises(ValueError, match="cost_weight must be a finite number >= 0"):
+        AStarPlanner(cost_weight=weight)
+    import services.nav._astar as compiled_loop  # the extension checks on its own: its heap needs keys >= 0
+
+    with pytest.raises(ValueError, match="cost_weight must be a finite number >= 0"):
+        compiled_loop.plan(np.zeros((4, 4), dtype=np.uint8), 4, 4, (0, 0), (3, 3), weight, False, None)

@@ -62,6 +62,11 @@ class AStarPlanner:
     allow_unknown: bool = False
     compiled: bool = True
 
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cost_weight) and self.cost_weight >= 0.0):
+            raise ValueError(f"cost_weight must be a finite number >= 0 (a cell's cost may only lengthen a step), "
+                             f"got {self.cost_weight!r}")
+
     @property
     def uses_compiled(self) -> bool:
         return self.compiled and _astar is not None
