@@ -25,6 +25,13 @@ def test_mistyped_value_is_named():
         convert_section({"demo": {"rate_hz": "fast"}}, "demo", Demo)
 
 
+def test_an_out_of_range_value_is_named():
+    from services.nav.config import NavConfig
+
+    with pytest.raises(ConfigError, match=r"\[nav.cost_weight\] Expected `float` >= 0.0"):
+        convert_section({"nav": {"cost_weight": -1.0}}, "nav", NavConfig)
+
+
 def test_unknown_table_is_named():
     with pytest.raises(ConfigError, match="lidra"):
         check_sections({"lidra": {}})

@@ -6,6 +6,8 @@ inflation_radius_m for the inflation radius: the paper's 0.63 / 0.645 m).
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import msgspec
 
 from services.nav.dwa import DwaConfig
@@ -40,7 +42,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     # added to the footprint (Nav2's footprint_padding): covers the half-cell quantisation of the costmaps
     footprint_padding_m: float = 0.05
     # planner
-    cost_weight: float = 3.0
+    # a cell's cost lengthens a step by this factor times cost / 252 (>= 0: the octile heuristic stays admissible)
+    cost_weight: Annotated[float, msgspec.Meta(ge=0.0, le=1e6)] = 3.0
     clearance_m: float = 0.3
     allow_unknown: bool = False
     path_spacing_m: float = 0.05
