@@ -40,8 +40,19 @@ def test_map_bench_slice_on_small_corrected_logs(corrected_dir, tmp_path, capsys
         assert row["ate_rms_m"] < 0.10, row
         assert row["closures_false"] is not None  # counted against the reference (2 on freiburg-101 today)
         assert "wheel scale ±3 %" in row["odometry_noise"]
+        assert 0.99 < row["reference_scale"] < 1.01 and row["ate_scaled_rms_m"] <= row["ate_rms_m"] + 1e-9
     table = capsys.readouterr().out
-    assert "ate_m" in table and "freiburg-101-corrected.log.gz" in table
+    assert "ate_m" in table and "ref_scale" in table and "freiburg-101-corrected.log.gz" in table
+
+
+@pytest.mark.timeout(900)
+def test_map_bench_exact_odometry_gives_slam_the_reference_unchanged(corrected_dir, tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["map", "bench", str(corrected_dir), "--only", "freiburg-101", "--odometry", "exact",
+                 "--max-scans", "120", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())
+    assert row["odometry"] == "exact" and row["odometry_noise"] == "as logged"
+    assert row["ate_rms_m"] < 0.10, row
 
 
 @pytest.mark.long

@@ -202,3 +202,18 @@ def test_mount_is_composed_along_the_static_transform_chain():
     np.testing.assert_allclose(mount_from_transforms("laser", fixed, "base_link"), [0.22, 0.02, math.pi / 2])
     np.testing.assert_allclose(mount_from_transforms("laser", fixed, None), [0.72, 0.02, math.pi / 2])
     np.testing.assert_allclose(mount_from_transforms("other", fixed, "base_link"), [0.0, 0.0, 0.0])
+
+
+def test_a_reference_in_another_metric_shows_as_scale_not_as_scaled_error():
+    """A map uniformly 0.4 % smaller than its reference: the rigid error grows with the extent, the Sim(2) fit
+    recovers the scale and leaves nothing."""
+    rng = np.random.default_rng(4)
+    reference = np.column_stack([rng.uniform(0, 200, 500), rng.uniform(0, 60, 500), rng.uniform(-3, 3, 500)])
+    ours = reference.copy()
+    ours[:, :2] = (reference[:, :2] - 50.0) / 1.004  # same shape, smaller, elsewhere
+    ours = compose(np.broadcast_to(np.array([3.0, -1.0, 0.4]), ours.shape), ours)
+    error = aligned_trajectory_error(ours, reference)
+    assert error.rms_m > 0.15
+    assert error.scale == pytest.approx(1.004, abs=1e-9)
+    assert error.scaled_rms_m < 1e-9
+    assert aligned_trajectory_error(reference, reference).scale == pytest.approx(1.0)

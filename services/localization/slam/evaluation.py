@@ -8,6 +8,13 @@ error |ε_θ| (rad). Reported: mean and standard deviation of both over all rela
 Against a reference trajectory (a SLAM-corrected log): ``aligned_trajectory_error`` is the RMS position error
 after the rigid SE(2) alignment minimising it (Umeyama 1991 without scale), and ``false_closures`` lists the loop
 closures whose measured relative pose disagrees with the reference's relative pose of the same two scans.
+
+A reference made by another SLAM run need not share the laser's metric: if its poses are consistent with ranges a
+fraction of a percent longer or shorter than the log's, a map built from the scans is uniformly smaller or larger
+than the reference, and the rigid error grows with the building's size although no part of the map is bent.
+``aligned_trajectory_error`` therefore also reports the Sim(2) fit (Umeyama with scale): ``scale``, the factor that
+takes the estimate onto the reference (1.003: the reference is 0.3 % larger), and ``scaled_rms_m``, the RMS position
+error after that fit. The rigid figure stays the headline; the scaled one says how much of it is metric.
 """
 
 from __future__ import annotations
@@ -103,6 +110,8 @@ class TrajectoryError:
     max_m: float
     rotation_rms_rad: float
     n_poses: int
+    scale: float = 1.0  #: Sim(2) fit: reference ≈ scale · R · estimate + t
+    scaled_rms_m: float = 0.0  #: RMS position error after the Sim(2) fit
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -120,9 +129,25 @@ def align_se2(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return np.array([t[0], t[1], theta])
 
 
+def align_sim2(poses: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, float]:
+    """The similarity (T, s) minimising Σ‖s·R(θ)·p_i + t − r_i‖² over positions (Umeyama 1991 with scale):
+    θ as in ``align_se2``, s = Σ (r_i − r̄)·R(θ)(p_i − p̄) / Σ ‖p_i − p̄‖², t = r̄ − s·R(θ)·p̄."""
+    p = np.asarray(poses, float)[:, :2]
+    r = np.asarray(reference, float)[:, :2]
+    mp, mr = p.mean(axis=0), r.mean(axis=0)
+    pc, rc = p - mp, r - mr
+    theta = align_se2(poses, reference)[2]
+    c, s = np.cos(theta), np.sin(theta)
+    rotated = pc @ np.array([[c, s], [-s, c]])  # rows R(θ)·(p_i − p̄)
+    spread = float(np.sum(pc * pc))
+    scale = float(np.sum(rc * rotated) / spread) if spread > 0.0 else 1.0
+    t = mr - scale * (np.array([[c, -s], [s, c]]) @ mp)
+    return np.array([t[0], t[1], theta]), scale
+
+
 def aligned_trajectory_error(poses: np.ndarray, reference: np.ndarray) -> TrajectoryError:
     """RMS / max position error and RMS heading error of ``poses`` (N, 3) against ``reference`` (N, 3) after
-    ``align_se2``."""
+    ``align_se2``; with the Sim(2) fit's scale and RMS (``align_sim2``)."""
     poses = np.asarray(poses, float)
     reference = np.asarray(reference, float)
     if poses.shape != reference.shape or len(poses) < 2:
@@ -130,8 +155,12 @@ def aligned_trajectory_error(poses: np.ndarray, reference: np.ndarray) -> Trajec
     aligned = compose(np.broadcast_to(align_se2(poses, reference), poses.shape), poses)
     d = np.hypot(*(aligned[:, :2] - reference[:, :2]).T)
     rot = wrap_angle(aligned[:, 2] - reference[:, 2])
+    (tx, ty, theta), scale = align_sim2(poses, reference)
+    c, s = np.cos(theta), np.sin(theta)
+    fitted = scale * poses[:, :2] @ np.array([[c, s], [-s, c]]) + np.array([tx, ty])
+    scaled = np.hypot(*(fitted - reference[:, :2]).T)
     return TrajectoryError(float(np.sqrt(np.mean(d**2))), float(d.max()), float(np.sqrt(np.mean(rot**2))),
-                           len(poses))
+                           len(poses), scale, float(np.sqrt(np.mean(scaled**2))))
 
 
 def false_closures(from_scans: np.ndarray, to_scans: np.ndarray, measurements: np.ndarray, reference: np.ndarray, *,

@@ -4,8 +4,11 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
 - a log with a relations file next to it (``NAME.relations`` for ``NAME.clf`` / ``NAME.orig.bag`` / ``NAME.bag``):
   the Kümmerle et al. 2009 relative-pose error (translational mean, m; rotational mean, rad) on the laser poses;
 - a log whose name contains ``corrected`` holds a reference trajectory, not odometry: SLAM gets that trajectory
-  corrupted by ``OdometryNoise.for_reference`` (``--odometry clean``) or ``OdometryNoise.degraded``, and the row gives
-  the RMS position error after rigid alignment (``ate_rms_m``) against the reference;
+  corrupted by ``OdometryNoise.for_reference`` (``--odometry clean``) or ``OdometryNoise.degraded``, or unchanged
+  (``--odometry exact``: what the scan matching and the back end make of perfect odometry, i.e. the part of the error
+  that odometry cannot be blamed for), and the row gives the RMS position error after rigid alignment (``ate_rms_m``)
+  against the reference, with the Sim(2) fit (``evaluation.aligned_trajectory_error``): ``reference_scale``, how
+  much larger the reference is than the map, and ``ate_scaled_rms_m``, the error left after that fit;
 - the real-time factor (log duration ÷ wall time of SLAM; ``-`` when the log's stamps are unusable) and by CPU time;
 - loop closures accepted / rejected, and ``false``: accepted closures whose measurement disagrees with a reference
   (the corrected trajectory, or for a relations log under degraded odometry the same log's clean-odometry result)
@@ -39,6 +42,8 @@ class BenchResult:
     translation_error_m: float | None
     rotation_error_rad: float | None
     ate_rms_m: float | None
+    ate_scaled_rms_m: float | None
+    reference_scale: float | None
     realtime_factor: float | None
     realtime_factor_cpu: float | None
     ms_per_scan: float
@@ -93,7 +98,7 @@ def parse_overrides(items: list[str] | None):
 
 def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | None = None,
               reference: np.ndarray | None = None, log=None, config=None):
-    """One row for ``log_path`` with ``odometry`` 'clean' or 'degraded' (``config``: a ``SlamConfig``, None for
+    """One row for ``log_path`` with ``odometry`` 'clean', 'degraded' or 'exact' (``config``: a ``SlamConfig``, None for
     the defaults); also returns the laser trajectory (for use as the degraded run's closure reference)."""
     from services.localization.slam.evaluation import (
         aligned_trajectory_error,
@@ -116,7 +121,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     noise = None
     if odometry == "degraded":
         noise = OdometryNoise.degraded(seed)
-    elif truth_scans is not None:
+    elif truth_scans is not None and odometry != "exact":
         noise = OdometryNoise.for_reference(seed)
     if noise is not None:
         log, _ = corrupt_odometry(log, noise)
@@ -124,14 +129,15 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     slam = run.slam
     stamps, poses = slam.trajectory()
     laser = scan_poses(poses, log.sensor_pose)
-    trans = rot = ate = None
+    trans = rot = ate = ate_scaled = scale = None
     relations_path = relations_for(log_path)
     if relations_path is not None:
         with relations_path.open() as f:
             error = relative_pose_error(stamps, laser, parse_relations(f))
         trans, rot = error.translation_mean_m, error.rotation_mean_rad
     if truth_scans is not None:
-        ate = aligned_trajectory_error(laser, truth_scans).rms_m
+        fit = aligned_trajectory_error(laser, truth_scans)
+        ate, ate_scaled, scale = fit.rms_m, fit.scaled_rms_m, fit.scale
     accepted = slam.loop_closures
     n_false = None
     if reference is not None and len(reference) == len(laser):
@@ -145,7 +151,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
                                      robot_reference).sum())
     row = BenchResult(
         log=log_path.name, odometry=odometry, scans=run.n_scans, keyframes=slam.n_keyframes,
-        translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate,
+        translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate, ate_scaled_rms_m=ate_scaled,
+        reference_scale=scale,
         realtime_factor=run.realtime_factor if log.stamps_from_log else None,
         realtime_factor_cpu=run.realtime_factor_cpu if log.stamps_from_log else None,
         ms_per_scan=1e3 * run.processing_s / max(run.n_scans, 1),
@@ -162,11 +169,13 @@ def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
     """One row per log; ``out`` defaults to the current ``sys.stdout`` (looked up at call time)."""
     out = sys.stdout if out is None else out
     header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
-              f"{'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} {'rej':>4s} {'false':>5s} {'fallbk':>6s}")
+              f"{'ate_sim2':>8s} {'ref_scale':>9s} {'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} "
+              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s}")
     print(header, file=out)
     for r in rows:
         print(f"{r.log:34s} {r.odometry:8s} {r.scans:6d} {_fmt(r.translation_error_m, '8.4f')} "
-              f"{_fmt(r.rotation_error_rad, '8.4f')} {_fmt(r.ate_rms_m, '7.3f')} {_fmt(r.realtime_factor, '6.1f')} "
+              f"{_fmt(r.rotation_error_rad, '8.4f')} {_fmt(r.ate_rms_m, '7.3f')} {_fmt(r.ate_scaled_rms_m, '8.3f')} "
+              f"{_fmt(r.reference_scale, '9.5f')} {_fmt(r.realtime_factor, '6.1f')} "
               f"{_fmt(r.realtime_factor_cpu, '7.1f')} {r.ms_per_scan:7.1f} {r.closures_accepted:5d} "
               f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d}", file=out)
 
@@ -212,8 +221,9 @@ def run_bench(args: argparse.Namespace) -> int:
 def add_bench_parser(map_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = map_subparsers.add_parser("bench", help="build + evaluate a map from every log in a folder (table)")
     p.add_argument("folder", help="folder searched recursively for .clf, .bag and .log.gz logs")
-    p.add_argument("--odometry", choices=["clean", "degraded", "both"], default="clean",
-                   help="odometry as logged (reference logs: lightly corrupted) or degraded (default: clean)")
+    p.add_argument("--odometry", choices=["clean", "degraded", "both", "exact"], default="clean",
+                   help="odometry as logged (reference logs: lightly corrupted), degraded, or for reference logs "
+                        "exact (the reference itself; default: clean)")
     p.add_argument("--seed", type=int, default=1, help="seed of the odometry corruption (default 1)")
     p.add_argument("--only", nargs="+", metavar="WORD", help="only logs whose file name contains one of these")
     p.add_argument("--max-scans", type=int, help="process only the first N scans of each log")
