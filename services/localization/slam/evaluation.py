@@ -14,7 +14,9 @@ fraction of a percent longer or shorter than the log's, a map built from the sca
 than the reference, and the rigid error grows with the building's size although no part of the map is bent.
 ``aligned_trajectory_error`` therefore also reports the Sim(2) fit (Umeyama with scale): ``scale``, the factor that
 takes the estimate onto the reference (1.003: the reference is 0.3 % larger), and ``scaled_rms_m``, the RMS position
-error after that fit. The rigid figure stays the headline; the scaled one says how much of it is metric.
+error after that fit. The rigid figure stays the headline. The fit takes whatever a uniform scale explains: a metric
+mismatch, but also a bend that happens to shrink or stretch the trajectory; it is a metric mismatch when the map's
+edges show the same bias one by one (their along-track length against the reference's).
 """
 
 from __future__ import annotations
