@@ -28,7 +28,7 @@ def test_mistyped_value_is_named():
 def test_an_out_of_range_value_is_named():
     from services.nav.config import NavConfig
 
-    with pytest.raises(ConfigError, match=r"\[nav.cost_weight\] Expected `float` >= 0.0"):
+    with pytest.raises(ConfigError, match=r"nav.cost_weight must be a finite number >= 0, got -1.0"):
         convert_section({"nav": {"cost_weight": -1.0}}, "nav", NavConfig)
 
 

@@ -6,7 +6,7 @@ inflation_radius_m for the inflation radius: the paper's 0.63 / 0.645 m).
 
 from __future__ import annotations
 
-from typing import Annotated
+import math
 
 import msgspec
 
@@ -41,9 +41,8 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
     footprint_radius_m: float = 0.0
     # added to the footprint (Nav2's footprint_padding): covers the half-cell quantisation of the costmaps
     footprint_padding_m: float = 0.05
-    # planner
-    # a cell's cost lengthens a step by this factor times cost / 252 (>= 0: the octile heuristic stays admissible)
-    cost_weight: Annotated[float, msgspec.Meta(ge=0.0, le=1e6)] = 3.0
+    # planner: a step into a cell of cost c is (1 + cost_weight c / 252) times its length (finite, >= 0)
+    cost_weight: float = 3.0
     clearance_m: float = 0.3
     allow_unknown: bool = False
     path_spacing_m: float = 0.05
@@ -107,3 +106,7 @@ class NavConfig(msgspec.Struct, forbid_unknown_fields=True):
         default_factory=lambda: CostmapConfig(update_frequency_hz=1.0, static_wall_tolerance_m=0.15))
     local_costmap: CostmapConfig = msgspec.field(default_factory=CostmapConfig)
     dwa: DwaConfig = msgspec.field(default_factory=DwaConfig)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.cost_weight) and self.cost_weight >= 0.0):  # A*'s octile heuristic needs it
+            raise ValueError(f"nav.cost_weight must be a finite number >= 0, got {self.cost_weight}")
