@@ -195,3 +195,18 @@ def test_corridor_route_of_the_built_map_scenario_does_not_drift_along_the_corri
     print(f"\nestimate - truth at the main corridor's end: {corridor_end[0]:+.3f} {corridor_end[1]:+.3f} m; at the "
           f"north corridor's end: {final[0]:+.3f} {final[1]:+.3f} m")
     assert abs(corridor_end[0]) < 0.06 and abs(corridor_end[1]) < 0.03
+
+
+def test_a_loop_match_must_be_a_maximum_in_rotation():
+    """The loop gate's rotation probe: the true pose of a scan in a room is a sharp maximum in heading; the same
+    scan turned 2.5° off it is not (turning it back by the 3° probe scores better), so such a match is refused."""
+    scan = _scanner(ROOM)
+    views = [np.array([x, y, 0.0]) for x in (-2.0, 0.0, 2.0) for y in (-1.0, 1.0)]
+    grid = MultiResolutionGrid.from_points(np.concatenate([transform_points(v, scan(v)) for v in views]), 0.05, 3)
+    truth = np.array([0.3, -0.2, 0.03])
+    points = scan(truth)
+    slam = GraphSlam(SlamConfig())
+    assert slam._rotation_is_sharp(grid, points, truth)
+    assert not slam._rotation_is_sharp(grid, points, truth + np.array([0.0, 0.0, math.radians(2.5)]))
+    assert GraphSlam(SlamConfig(loop_rotation_probe_rad=0.0))._rotation_is_sharp(
+        grid, points, truth + np.array([0.0, 0.0, math.radians(2.5)]))  # 0: the probe is off
