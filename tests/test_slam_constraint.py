@@ -15,7 +15,7 @@ from services.common.world import World
 from services.localization.slam.constraint import match_constraint
 from services.localization.slam.likelihood import MultiResolutionGrid
 from services.localization.slam.mapper import GraphSlam, SlamConfig, scan_to_points
-from services.localization.slam.matcher import refine, translation_curvature
+from services.localization.slam.matcher import refine, score, translation_curvature
 from services.localization.slam.visibility import ViewProfiles
 from services.localization.synthetic import Laser
 
@@ -204,9 +204,10 @@ def test_a_loop_match_must_be_a_maximum_in_rotation():
     views = [np.array([x, y, 0.0]) for x in (-2.0, 0.0, 2.0) for y in (-1.0, 1.0)]
     grid = MultiResolutionGrid.from_points(np.concatenate([transform_points(v, scan(v)) for v in views]), 0.05, 3)
     truth = np.array([0.3, -0.2, 0.03])
+    off = truth + np.array([0.0, 0.0, math.radians(2.5)])
     points = scan(truth)
     slam = GraphSlam(SlamConfig())
-    assert slam._rotation_is_sharp(grid, points, truth)
-    assert not slam._rotation_is_sharp(grid, points, truth + np.array([0.0, 0.0, math.radians(2.5)]))
+    assert slam._rotation_is_sharp(grid, points, truth, score(grid.levels[0], points, truth))
+    assert not slam._rotation_is_sharp(grid, points, off, score(grid.levels[0], points, off))
     assert GraphSlam(SlamConfig(loop_rotation_probe_rad=0.0))._rotation_is_sharp(
-        grid, points, truth + np.array([0.0, 0.0, math.radians(2.5)]))  # 0: the probe is off
+        grid, points, off, score(grid.levels[0], points, off))  # 0: the probe is off

@@ -119,47 +119,46 @@ class TrajectoryError:
         return asdict(self)
 
 
-def align_se2(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """The transform T (x, y, theta) minimising Σ‖T ⊕ p_i − r_i‖² over positions (Umeyama, no scale)."""
-    p = np.asarray(poses, float)[:, :2]
-    r = np.asarray(reference, float)[:, :2]
-    mp, mr = p.mean(axis=0), r.mean(axis=0)
-    cov = (r - mr).T @ (p - mp)
-    theta = float(np.arctan2(cov[1, 0] - cov[0, 1], cov[0, 0] + cov[1, 1]))
+def _rotation(theta: float) -> np.ndarray:
     c, s = np.cos(theta), np.sin(theta)
-    t = mr - np.array([[c, -s], [s, c]]) @ mp
-    return np.array([t[0], t[1], theta])
+    return np.array([[c, -s], [s, c]])
 
 
-def align_sim2(poses: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, float]:
-    """The similarity (T, s) minimising Σ‖s·R(θ)·p_i + t − r_i‖² over positions (Umeyama 1991 with scale):
-    θ as in ``align_se2``, s = Σ (r_i − r̄)·R(θ)(p_i − p̄) / Σ ‖p_i − p̄‖², t = r̄ − s·R(θ)·p̄."""
+def _umeyama(poses: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Umeyama 1991 on positions: (p̄, r̄, θ, s) with θ the rotation minimising Σ‖R(θ)(p_i − p̄) − (r_i − r̄)‖² and
+    s = Σ (r_i − r̄)·R(θ)(p_i − p̄) / Σ ‖p_i − p̄‖² the scale of the similarity fit (θ is the same with or without)."""
     p = np.asarray(poses, float)[:, :2]
     r = np.asarray(reference, float)[:, :2]
     mp, mr = p.mean(axis=0), r.mean(axis=0)
     pc, rc = p - mp, r - mr
-    theta = align_se2(poses, reference)[2]
-    c, s = np.cos(theta), np.sin(theta)
-    rotated = pc @ np.array([[c, s], [-s, c]])  # rows R(θ)·(p_i − p̄)
+    cov = rc.T @ pc
+    theta = float(np.arctan2(cov[1, 0] - cov[0, 1], cov[0, 0] + cov[1, 1]))
     spread = float(np.sum(pc * pc))
-    scale = float(np.sum(rc * rotated) / spread) if spread > 0.0 else 1.0
-    t = mr - scale * (np.array([[c, -s], [s, c]]) @ mp)
-    return np.array([t[0], t[1], theta]), scale
+    scale = float(np.sum(rc * (pc @ _rotation(theta).T)) / spread) if spread > 0.0 else 1.0
+    return mp, mr, theta, scale
+
+
+def align_se2(poses: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The transform T (x, y, theta) minimising Σ‖T ⊕ p_i − r_i‖² over positions (Umeyama, no scale)."""
+    mp, mr, theta, _ = _umeyama(poses, reference)
+    t = mr - _rotation(theta) @ mp
+    return np.array([t[0], t[1], theta])
 
 
 def aligned_trajectory_error(poses: np.ndarray, reference: np.ndarray) -> TrajectoryError:
-    """RMS / max position error and RMS heading error of ``poses`` (N, 3) against ``reference`` (N, 3) after
-    ``align_se2``; with the Sim(2) fit's scale and RMS (``align_sim2``)."""
+    """RMS / max position error and RMS heading error of ``poses`` (N, 3) against ``reference`` (N, 3) after the
+    rigid fit ``align_se2``; with the similarity fit's scale s and RMS (positions s·R(θ)(p_i − p̄) + r̄)."""
     poses = np.asarray(poses, float)
     reference = np.asarray(reference, float)
     if poses.shape != reference.shape or len(poses) < 2:
         raise ValueError(f"trajectories must have the same length >= 2 (got {poses.shape} and {reference.shape})")
-    aligned = compose(np.broadcast_to(align_se2(poses, reference), poses.shape), poses)
+    mp, mr, theta, scale = _umeyama(poses, reference)
+    rotation = _rotation(theta)
+    rigid = np.array([*(mr - rotation @ mp), theta])
+    aligned = compose(np.broadcast_to(rigid, poses.shape), poses)
     d = np.hypot(*(aligned[:, :2] - reference[:, :2]).T)
     rot = wrap_angle(aligned[:, 2] - reference[:, 2])
-    (tx, ty, theta), scale = align_sim2(poses, reference)
-    c, s = np.cos(theta), np.sin(theta)
-    fitted = scale * poses[:, :2] @ np.array([[c, s], [-s, c]]) + np.array([tx, ty])
+    fitted = scale * (poses[:, :2] - mp) @ rotation.T + mr
     scaled = np.hypot(*(fitted - reference[:, :2]).T)
     return TrajectoryError(float(np.sqrt(np.mean(d**2))), float(d.max()), float(np.sqrt(np.mean(rot**2))),
                            len(poses), scale, float(np.sqrt(np.mean(scaled**2))))

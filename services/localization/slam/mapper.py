@@ -822,19 +822,19 @@ class GraphSlam:
         self.loop_checks += 1
         if float(np.linalg.eigvalsh(curvature)[0]) < c.loop_min_sharpness:
             return None
-        return curvature if self._rotation_is_sharp(grid, points, result.pose) else None
+        return curvature if self._rotation_is_sharp(grid, points, result.pose, result.score) else None
 
-    def _rotation_is_sharp(self, grid: MultiResolutionGrid, points: np.ndarray, pose: np.ndarray) -> bool:
+    def _rotation_is_sharp(self, grid: MultiResolutionGrid, points: np.ndarray, pose: np.ndarray,
+                           score_at_pose: float) -> bool:
         """s₀ − max(s(θ + h), s(θ − h)) > ``loop_min_rotation_drop``·s₀ on the fine grid, h =
-        ``loop_rotation_probe_rad``: the match is a maximum in rotation, not one of several headings that fit."""
+        ``loop_rotation_probe_rad``, s₀ = ``score_at_pose`` (a MatchResult's score is that fine-grid score): the
+        match is a maximum in rotation, not one of several headings that fit."""
         c = self.config
         if c.loop_rotation_probe_rad <= 0.0:
             return True
-        fine = grid.levels[0]
-        s0 = score(fine, points, pose)
-        turned = max(score(fine, points, pose + np.array([0.0, 0.0, h]))
+        turned = max(score(grid.levels[0], points, pose + np.array([0.0, 0.0, h]))
                      for h in (c.loop_rotation_probe_rad, -c.loop_rotation_probe_rad))
-        return s0 - turned > c.loop_min_rotation_drop * s0
+        return score_at_pose - turned > c.loop_min_rotation_drop * score_at_pose
 
     def optimize(self, iterations: int = 20) -> None:
         """Re-optimise the pose graph; the local submap is rebuilt from the new poses. Loop grids are kept: they
