@@ -81,6 +81,27 @@ def test_raycast_from_inside_a_wall_or_outside_is_zero(corridor: World) -> None:
     assert corridor.raycast(100.0, 0.0, np.array([0.0]), 20.0).tolist() == [0.0]
 
 
+def test_raycast_refuses_a_non_finite_pose_by_name(corridor: World) -> None:
+    with pytest.raises(ValueError, match="non-finite pose or angle: x=nan"):
+        corridor.raycast(math.nan, 0.0, np.array([0.0]), 20.0)
+    with pytest.raises(ValueError, match="1 non-finite of 2 angles"):
+        corridor.raycast(3.0, 3.5, np.array([0.0, math.inf]), 20.0)
+
+
+def test_a_runaway_step_cannot_throw_a_beam_off_the_grid() -> None:
+    """However a step is computed (here the free-run table is poisoned with inf and NaN, the way a beam exactly
+    along a grid axis multiplies a run by 1/cos ~ 1e16), a beam ends within the range asked for instead of at a
+    float index outside the grid (seen once as ``index -9223372036854775808 is out of bounds``)."""
+    w = World.load_builtin("corridor")
+    clean = w.raycast(3.0, 3.5, np.linspace(-math.pi, math.pi, 73), 20.0)
+    w._runs_flat = w._runs_flat.copy()
+    w._runs_flat[::7] = np.inf
+    w._runs_flat[3::7] = np.nan
+    poisoned = w.raycast(3.0, 3.5, np.linspace(-math.pi, math.pi, 73), 20.0)
+    assert np.isfinite(poisoned).all() and (poisoned >= 0.0).all() and (poisoned <= 20.0).all()
+    assert np.count_nonzero(np.abs(poisoned - clean) < 1e-6) > 0
+
+
 def test_dynamic_obstacles_by_request_and_schedule() -> None:
     w = World.load_builtin("corridor")
     beam = np.array([0.0])

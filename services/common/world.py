@@ -226,6 +226,9 @@ class World:
         """Range (m) along each world-frame angle from (x, y) to the first solid cell or active dynamic rectangle;
         ``max_range_m`` where nothing is hit within it."""
         angles = np.asarray(angles_rad, dtype=np.float64)
+        if not (math.isfinite(x) and math.isfinite(y) and np.isfinite(angles).all()):
+            raise ValueError(f"raycast from a non-finite pose or angle: x={x}, y={y}, "
+                             f"{int(np.count_nonzero(~np.isfinite(angles)))} non-finite of {angles.size} angles")
         res = self.resolution_m
         n = angles.shape[0]
         cols = self._cols_p
@@ -264,7 +267,9 @@ class World:
         run_offset[0] = (d[0] > 0.0) * cells
         run_offset[1] = 2 * cells + (d[1] > 0.0) * cells
         origin = np.array([[gx], [gy]])
-        weights = np.array([1.0, float(self._cols_p)])
+        cols = float(self._cols_p)
+        # no step is longer than the range asked for: t stays finite however a beam lines up with the grid
+        step_cap = max_t + 2.0
         clear = self._clear_flat
         runs = self._runs_flat
         t = np.zeros(n)
@@ -275,16 +280,17 @@ class World:
             p = d * t
             p += origin
             cell = np.floor(p + nudge)
-            flat = (weights @ cell).astype(np.intp)
-            clearance = clear.take(flat)
+            flat = (cell[1] * cols + cell[0]).astype(np.intp)  # exact integers in float64; no BLAS call
+            clearance = clear.take(flat, mode="clip")  # a beam off the grid reads a corner: solid
             hit = clearance < 0.0
             exit_ = cell + side
             exit_ -= p
             exit_ *= inv_d  # distance to leave the cell along x (row 0) and along y (row 1)
-            run_end = runs.take(run_offset + flat) * inv_d
+            run_end = runs.take(run_offset + flat, mode="clip") * inv_d
             run_end += exit_  # distance to the end of the free run along x (row 0) and along y (row 1)
             np.minimum(run_end, exit_[::-1], out=run_end)  # ... but only while still in this row / column
             step = np.maximum(run_end.max(axis=0), clearance)
+            np.fmin(step, step_cap, out=step)  # fmin: a NaN step becomes the cap too
             step += 1e-6
             np.greater(alive, hit, out=alive)  # alive and not hit
             step *= alive

@@ -81,7 +81,10 @@ class ScanSource:
     def laser_ranges(self, angles_rad: np.ndarray) -> tuple[float, np.ndarray]:
         x, y, th = self.laser_pose()
         angles = np.asarray(angles_rad, dtype=np.float64)
-        ranges = self.world.raycast(x, y, angles + th, self.max_range_m)
+        try:
+            ranges = self.world.raycast(x, y, angles + th, self.max_range_m)
+        except (ValueError, IndexError) as e:  # name the pose: a failure that repeats must be reproducible
+            raise RuntimeError(f"ray casting from laser pose ({x!r}, {y!r}, {th!r}) failed: {e}") from e
         bodies = self.bodies()
         if bodies:
             np.minimum(ranges, ray_discs(x, y, angles + th, bodies, self.max_range_m), out=ranges)
