@@ -4,6 +4,10 @@ The robot is moved by ``sim/teleport`` in small steps (default 4 cm / 0.04 rad e
 harness publishes ``odom`` from ``sim/ground_truth`` with a 1 % scale error (a jump over 1 m is a kidnapping: the
 wheels did not turn, odometry does not see it). The map pose the stack reports is ``tf/map_odom`` ∘ odom; while
 ``recording``, each ground-truth sample logs (travelled m, xy error m, |theta error| rad).
+
+Each step waits until ``sim/ground_truth`` shows the robot where it was put before the next one: on a loaded
+machine the sim can publish less often than the harness teleports, and odometry interpolated over several jumps
+at once would place the scans between them centimetres wrong (a test artefact, not localization's error).
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ class TruthOdometryHarness:
         self.errors: list[tuple[float, float, float]] = []
         self.travelled_m = 0.0
         self.recording = False
+        self._awaited: tuple[float, float, float] | None = None
+        self._arrived = asyncio.Event()
         node.subscribe("sim/ground_truth", self.on_truth)
         node.subscribe("tf/map_odom", self.on_tf)
         node.subscribe("pose", self.on_pose)
@@ -59,6 +65,10 @@ class TruthOdometryHarness:
                 self.odom = compose(self.odom, body)
                 self.travelled_m += math.hypot(dx, dy)
         self.last_truth = true
+        awaited = self._awaited
+        if awaited is not None and math.hypot(true[0] - awaited[0], true[1] - awaited[1]) < 1e-6 and \
+                abs(float(wrap_angle(true[2] - awaited[2]))) < 1e-6:
+            self._arrived.set()
         self.pub_odom.put(Odometry(stamp=gt.stamp, pose=Pose2D(x=self.odom[0], y=self.odom[1], theta=self.odom[2])))
         if self.map_odom is not None:
             tf = self.map_odom
@@ -68,10 +78,20 @@ class TruthOdometryHarness:
                 self.errors.append((self.travelled_m, math.hypot(est[0] - true[0], est[1] - true[1]),
                                     abs(float(wrap_angle(est[2] - true[2])))))
 
-    async def teleport(self, pose: tuple[float, float, float]) -> None:
+    async def teleport(self, pose: tuple[float, float, float], arrival_timeout_s: float = 10.0) -> None:
+        """Move the robot and wait until a ground-truth sample shows it there."""
+        self._awaited = pose
+        self._arrived.clear()
         request = TeleportRequest(pose=Pose2D(x=pose[0], y=pose[1], theta=pose[2]))
         reply = await self.node.query("sim/teleport", request, timeout_s=10.0)  # generous: a loaded machine
         assert reply.ok, reply.message
+        try:
+            await asyncio.wait_for(self._arrived.wait(), arrival_timeout_s)
+        except TimeoutError:
+            raise AssertionError(f"sim/ground_truth did not show the robot at {pose} within "
+                                 f"{arrival_timeout_s} s of the teleport; last truth {self.last_truth}") from None
+        finally:
+            self._awaited = None
 
     async def drive(self, waypoints: list[tuple[float, float, float]]) -> None:
         for pose in route(waypoints, step_m=self.step_m, step_rad=self.step_rad):
