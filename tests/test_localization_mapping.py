@@ -13,7 +13,6 @@ ground-truth walls count where the built map saw free space next to them.
 from __future__ import annotations
 
 import asyncio
-import json
 import math
 import subprocess
 import sys
@@ -35,6 +34,7 @@ from services.common.se2 import wrap_angle
 from services.localization.slam.map_compare import best_aligned_f1, occupied_f1, surface
 from services.localization.slam.map_files import read_trajectory
 from tests.support.hmi import HmiClient, base_url, password_of
+from tests.support.stats import service_stats
 from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
 
@@ -108,13 +108,6 @@ def test_surface_keeps_the_visible_boundary_and_region_limits_recall():
 
 
 # ------------------------------------------------------------------------------------------------ simulator
-
-def service_stats(stack, service: str) -> dict:
-    for reply in stack.session().get(stack.keys(f"@stats/{service}"), timeout=2.0):
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-    raise AssertionError(f"no stats from {service}")
-
 
 def ground_truth(tmp_path: Path):
     out = tmp_path / "truth" / "corridor"

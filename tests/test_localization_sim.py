@@ -18,6 +18,7 @@ from proto.messages import Empty, GroundTruth, Odometry, Twist2D
 from services.common.node import Node
 from services.common.se2 import compose, wrap_angle
 from services.localization.synthetic import TABLE3_ROUTE
+from tests.support.stats import service_stats
 from tests.support.truth_odometry import TruthOdometryHarness
 from tests.support.waiting import wait_for
 
@@ -36,8 +37,9 @@ async def test_amcl_in_the_simulated_corridor(stack_factory):
         errors = h.take_errors()
         rms_xy = float(np.sqrt(np.mean(errors[:, 1] ** 2)))
         rms_theta = float(np.sqrt(np.mean(errors[:, 2] ** 2)))
+        stats = service_stats(stack, "localization")
         print(f"\nsim corridor, {errors[-1, 0] - errors[0, 0]:.1f} m to goal 4: AMCL RMS error {rms_xy:.4f} m, "
-              f"{rms_theta:.4f} rad (max {errors[:, 1].max():.3f} m)")
+              f"{rms_theta:.4f} rad (max {errors[:, 1].max():.3f} m); localization {stats}")
         assert errors[-1, 0] - errors[0, 0] > 25.0
         assert rms_xy <= 0.03 and rms_theta <= 0.02
 
