@@ -9,23 +9,24 @@ import sys
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-COUNT_THREADS = "import os; {imports}; print(len(os.listdir('/proc/self/task')))"
 
 
-def _threads_after(imports: str) -> int:
-    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
-    done = subprocess.run([sys.executable, "-c", COUNT_THREADS.format(imports=imports)], capture_output=True,
-                          text=True, env=env, cwd=REPO_ROOT, check=True, timeout=60)
-    return int(done.stdout)
+def _run(code: str, **env_changes: str | None) -> str:
+    """stdout of ``python -c code`` in the repo, with environment variables set (a value) or removed (None)."""
+    env = dict(os.environ)
+    for name, value in env_changes.items():
+        if value is None:
+            env.pop(name, None)
+        else:
+            env[name] = value
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO_ROOT,
+                          check=True, timeout=60).stdout.strip()
 
 
 def test_importing_the_services_makes_blas_single_threaded() -> None:
-    assert _threads_after("import services.nav.costmap, numpy, scipy.ndimage") == 1
+    code = "import os, services.nav.costmap, numpy, scipy.ndimage; print(len(os.listdir('/proc/self/task')))"
+    assert _run(code, OPENBLAS_NUM_THREADS=None, OMP_NUM_THREADS=None) == "1"
 
 
 def test_a_blas_thread_count_set_by_the_environment_is_kept() -> None:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="3")
-    done = subprocess.run([sys.executable, "-c", "import os, services; print(os.environ['OPENBLAS_NUM_THREADS'])"],
-                          capture_output=True, text=True, env=env, cwd=REPO_ROOT, check=True, timeout=60)
-    assert done.stdout.strip() == "3"
-
+    assert _run("import os, services; print(os.environ['OPENBLAS_NUM_THREADS'])", OPENBLAS_NUM_THREADS="3") == "3"

@@ -224,7 +224,7 @@ class World:
     def raycast(self, x: float, y: float, angles_rad: np.ndarray, max_range_m: float,
                 max_iterations: int = 2000) -> np.ndarray:
         """Range (m) along each world-frame angle from (x, y) to the first solid cell or active dynamic rectangle;
-        ``max_range_m`` where nothing is hit within it."""
+        ``max_range_m`` where nothing is hit within it. A non-finite pose or angle is a ValueError."""
         angles = np.asarray(angles_rad, dtype=np.float64)
         if not (math.isfinite(x) and math.isfinite(y) and np.isfinite(angles).all()):
             raise ValueError(f"raycast from a non-finite pose or angle: x={x}, y={y}, "

@@ -83,7 +83,7 @@ class ScanSource:
         angles = np.asarray(angles_rad, dtype=np.float64)
         try:
             ranges = self.world.raycast(x, y, angles + th, self.max_range_m)
-        except (ValueError, IndexError) as e:  # name the pose: a failure that repeats must be reproducible
+        except ValueError as e:  # name the whole pose: a failure that repeats must be reproducible
             raise RuntimeError(f"ray casting from laser pose ({x!r}, {y!r}, {th!r}) failed: {e}") from e
         bodies = self.bodies()
         if bodies:
