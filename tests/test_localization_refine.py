@@ -248,3 +248,28 @@ def test_an_endpoint_just_past_the_map_edge_scores_at_the_edge() -> None:
     assert d[1] == pytest.approx(0.01, abs=1e-6)
     assert d[2] == pytest.approx(0.05, abs=1e-6)
     assert d[3] == pytest.approx(0.8, abs=1e-6)  # far beyond: the distance to the edge, capped at outside_m
+
+
+@pytest.mark.parametrize("map_surface", ["face", "cell"])
+def test_the_compiled_scan_likelihood_matches_numpy(map_surface: str):
+    """The C kernel (``_refine.c``) against the NumPy reference: poses all over the hall and beyond its edge (beams
+    ending off the map), a rotated map origin, a mounted laser, with and without the pass-through check."""
+    from services.localization import refine
+
+    if refine._refine is None:
+        pytest.skip("the _refine C extension was not built (no C compiler at install)")
+    grid = hall(edge_unknown=False, wall_cells=2)
+    params = AmclParams()
+    pf = ParticleFilter(grid, params)
+    laser = GridLaser(grid, beams=541, rng=np.random.default_rng(5))
+    beams = dense_beams(laser, (6.0, 3.0, 0.3), params, 541)
+    model = BeamModel(params.z_hit, params.z_rand / 20.0, params.sigma_hit, params.laser_likelihood_max_dist)
+    distance, walls = pf.field.refinement_fields(map_surface)
+    rng = np.random.default_rng(11)
+    poses = np.column_stack([rng.uniform(-2.0, 16.0, 300), rng.uniform(-2.0, 8.0, 300), rng.uniform(-4.0, 4.0, 300)])
+    origin = (grid.origin[0] - 0.3, grid.origin[1] + 0.2, 0.07)
+    for occupied in (None, walls):
+        args = (distance, origin, grid.resolution, model, poses, beams.ranges, beams.bearings, (0.25, 0.02, 0.01))
+        compiled = refine.log_likelihood(*args, occupied=occupied)
+        reference = refine.log_likelihood_numpy(*args, occupied=occupied)
+        np.testing.assert_allclose(compiled, reference, rtol=1e-11, atol=1e-9)

@@ -190,3 +190,30 @@ def test_incremental_global_update_equals_a_full_one() -> None:
     incremental.clear_obstacles()
     incremental.update()
     assert np.array_equal(incremental.master.cost, global_costmap(occ).master.cost)
+
+
+def test_compiled_ray_clearing_and_marking_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``_navops.raytrace`` against the NumPy reference on scans whose rays leave the grid, end in no return, or
+    end at the sensor: the obstacle grids are identical after every scan."""
+    from services.nav import costmap as costmap_module
+
+    if costmap_module._navops is None:
+        pytest.skip("the _navops C extension was not built (no C compiler at install)")
+    rng = np.random.default_rng(9)
+    master = Costmap2D.empty(90, 70, RES, origin_x=-0.3, origin_y=0.2)
+    compiled, plain = ObstacleLayer(), ObstacleLayer()
+    for k in range(15):
+        x, y = rng.uniform(-0.5, 4.8), rng.uniform(0.0, 3.8)
+        angles = np.linspace(-math.pi, math.pi, 181, endpoint=False) + rng.uniform(-0.01, 0.01)
+        ranges = rng.uniform(0.0, 5.0, angles.size)
+        ranges[rng.random(angles.size) > 0.85] = math.inf
+        ranges[rng.random(angles.size) > 0.95] = 20.0
+        obs = scan_from(x, y, list(ranges), list(angles), range_max=20.0)
+        compiled.add_scan(master, obs)
+        with monkeypatch.context() as m:
+            m.setattr(costmap_module, "_navops", None)
+            plain.add_scan(master, obs)
+        assert compiled.grid is not None and plain.grid is not None
+        assert np.array_equal(compiled.grid, plain.grid), f"scan {k}"
+        assert compiled.marked_cells == plain.marked_cells
+    assert compiled.marked_cells > 0 and (compiled.grid == FREE).any()

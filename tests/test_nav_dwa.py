@@ -107,3 +107,37 @@ def test_escapes_from_the_inscribed_zone() -> None:
     pose = (1.35, 2.5, 0.0)  # 0.25 m from the wall: inside the inscribed radius 0.3 m
     res = p.plan(cm, pose, (0.0, 0.0, 0.0), straight_path(2.5, 1.35, 4.0), (4.0, 2.5, 0.0))
     assert res.ok and res.twist[0] > 0.0
+
+
+def test_the_compiled_rollout_and_path_search_match_numpy(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``_navops.c`` against the NumPy reference, bit for bit: rollouts that leave a cluttered grid (cells off the map
+    are NO_INFORMATION), nearest path points, and the twist a whole plan picks, with and without the extension."""
+    from services.nav import dwa as dwa_module
+
+    if dwa_module._navops is None:
+        pytest.skip("the _navops C extension was not built (no C compiler at install)")
+    rng = np.random.default_rng(4)
+    cm = Costmap2D(0.05, -0.4, 0.3, rng.integers(0, 255, (60, 80)).astype(np.uint8))
+    p = planner()
+    seen = []
+    for pose, current in [((1.0, 1.2, 0.3), (0.1, 0.0, 0.0)), ((3.5, 3.2, -2.0), (0.3, -0.1, 0.5)),
+                          ((0.0, 0.0, math.pi), (0.0, 0.0, 0.0))]:
+        twists = p.samples(current)
+        traj, cost = p.rollout_costs(cm, pose, twists)
+        reference = p.rollout(pose, twists)
+        assert np.array_equal(traj, reference)
+        assert np.array_equal(cost, cm.cost_at(reference[..., 0], reference[..., 1]))
+        seen.append(cost)
+        path = straight_path(y=pose[1])[:25]
+        idx, d2 = dwa_module.nearest_points(traj[:, -1, :], path)
+        ref_idx, ref_d2 = dwa_module.nearest_points_numpy(traj[:, -1, :], path)
+        assert np.array_equal(idx, ref_idx) and np.array_equal(d2, ref_d2)
+    all_costs = np.concatenate([c.ravel() for c in seen])
+    assert (all_costs == 255).any() and (all_costs < 255).any()  # some poses leave the grid, some do not
+    free = free_map()
+    path = straight_path()
+    compiled = p.plan(free, (1.0, 2.4, 0.1), (0.1, 0.0, 0.0), path, (4.5, 2.5, 0.0), previous=(0.1, 0.0, 0.0))
+    monkeypatch.setattr(dwa_module, "_navops", None)
+    plain = p.plan(free, (1.0, 2.4, 0.1), (0.1, 0.0, 0.0), path, (4.5, 2.5, 0.0), previous=(0.1, 0.0, 0.0))
+    assert compiled.twist == plain.twist and compiled.scores == plain.scores
+    assert np.array_equal(compiled.trajectory, plain.trajectory)

