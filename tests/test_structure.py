@@ -7,8 +7,10 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 #: the optional imports: the C extensions built at install when a compiler is present, each with a fallback that
-#: computes the same result (A*'s pure-Python loop; scipy.ndimage for the grid distance transform and labelling)
-OPTIONAL_IMPORTS = {"services/nav/astar.py", "services/common/gridops.py"}
+#: computes the same result (A*'s pure-Python loop; scipy.ndimage for the grid distance transform and labelling;
+#: NumPy for the DWA rollout, the obstacle layer's ray clearing and the refinement's scan likelihood)
+OPTIONAL_IMPORTS = {"services/nav/astar.py", "services/common/gridops.py", "services/nav/dwa.py",
+                    "services/nav/costmap.py", "services/localization/refine.py"}
 
 
 def python_files(*folders: str) -> list[tuple[str, str]]:
