@@ -7,7 +7,7 @@ STAMP  := $(VENV)/.installed
 .PHONY: install run test test-long lint bench schema clean
 
 $(STAMP): pyproject.toml setup.py services/nav/_astar.c services/common/_gridops.c services/localization/_refine.c \
-		services/nav/_navops.c
+		services/nav/_navops.c services/common/_pybuffer.h
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[dev]'

@@ -12,9 +12,11 @@ from setuptools import Extension, setup
 
 setup(ext_modules=[Extension("services.nav._astar", ["services/nav/_astar.c"],
                              extra_compile_args=["-O2", "-ffp-contract=off"], optional=True),
-                        Extension("services.nav._navops", ["services/nav/_navops.c"],
+                        Extension("services.nav._navops", ["services/nav/_navops.c"], include_dirs=["services/common"],
+                                  depends=["services/common/_pybuffer.h"],
                                   extra_compile_args=["-O2", "-ffp-contract=off"], optional=True),
                         Extension("services.localization._refine", ["services/localization/_refine.c"],
+                                  include_dirs=["services/common"], depends=["services/common/_pybuffer.h"],
                                   extra_compile_args=["-O2", "-ffp-contract=off"], optional=True),
                         Extension("services.common._gridops", ["services/common/_gridops.c"],
                                   extra_compile_args=["-O2", "-ffp-contract=off"], optional=True)])

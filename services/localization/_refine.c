@@ -20,24 +20,12 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include "_pybuffer.h"
+
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-
-static int get_buffer(PyObject *obj, Py_buffer *view, int ndim, Py_ssize_t itemsize, const char *format,
-                      const char *what) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
-        return -1;
-    }
-    if (view->ndim != ndim || view->itemsize != itemsize || (format && strcmp(view->format, format) != 0)) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_ValueError, "log_likelihood: %s must be C-contiguous, %d-D, %s", what, ndim,
-                     format ? format : "1-byte");
-        return -1;
-    }
-    return 0;
-}
 
 /* Bilinear field value at map point (x, y); NAN when the point is not finite. */
 static double field_at(const double *dist, Py_ssize_t h, Py_ssize_t w, double ox, double oy, double c0, double s0,

@@ -30,23 +30,11 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include "_pybuffer.h"
+
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
-
-static int get_buffer(PyObject *obj, Py_buffer *view, int ndim, Py_ssize_t itemsize, const char *format,
-                      const char *what) {
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
-        return -1;
-    }
-    if (view->ndim != ndim || view->itemsize != itemsize || (format && strcmp(view->format, format) != 0)) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_ValueError, "rollout_costs: %s must be C-contiguous, %d-D, %s", what, ndim,
-                     format ? format : "1-byte");
-        return -1;
-    }
-    return 0;
-}
 
 static PyObject *rollout_costs(PyObject *self, PyObject *args) {
     PyObject *cost_obj, *twists_obj, *inv_obj, *s_obj, *c_obj, *th_obj;
