@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from services.common.se2 import between, compose
-from services.localization.slam.evaluation import aligned_trajectory_error, false_closures, scan_poses
+from services.localization.slam.evaluation import aligned_trajectory_error, edge_bias, false_closures, scan_poses
 from services.localization.slam.logs import parse_carmen, read_log, with_mount
 from services.localization.slam.mapper import GraphSlam, LoopClosure
 from services.localization.slam.odometry_noise import OdometryNoise, corrupt_poses
@@ -217,3 +217,24 @@ def test_a_reference_in_another_metric_shows_as_scale_not_as_scaled_error():
     assert error.scale == pytest.approx(1.004, abs=1e-9)
     assert error.scaled_rms_m < 1e-9
     assert aligned_trajectory_error(reference, reference).scale == pytest.approx(1.0)
+
+
+def test_edge_bias_measures_a_uniform_shortening_and_a_steady_turn_not_zero_mean_noise():
+    rng = np.random.default_rng(5)
+    headings = np.cumsum(rng.uniform(-0.4, 0.4, 200))
+    steps = np.column_stack([np.full(200, 0.8), np.zeros(200), np.diff(headings, prepend=0.0)])
+    steps[50] = [0.0, 0.0, 1.2]  # a turn on the spot: no direction to measure along, left out
+    reference = np.zeros((201, 3))
+    for k, step in enumerate(steps):
+        reference[k + 1] = compose(reference[k], step)
+    true_steps = between(reference[:-1], reference[1:])
+    biased = true_steps * np.array([0.997, 0.997, 1.0]) + np.array([0.0, 0.0, 0.001])
+    bias = edge_bias(reference[:-1], reference[1:], biased)
+    assert bias.n_edges == 199 and bias.path_m == pytest.approx(199 * 0.8)
+    assert bias.along_pct == pytest.approx(-0.3, abs=1e-9)
+    assert bias.heading_deg_per_100m == pytest.approx(100 * math.degrees(0.001 * 199) / (199 * 0.8), rel=1e-9)
+    noisy = true_steps + rng.normal(0.0, [0.01, 0.01, 0.003], true_steps.shape)
+    unbiased = edge_bias(reference[:-1], reference[1:], noisy)
+    assert abs(unbiased.along_pct) < 0.3 and abs(unbiased.heading_deg_per_100m) < 5.0
+    with pytest.raises(ValueError, match="measured edges"):
+        edge_bias(reference[:-1], reference[1:], biased[:-1])

@@ -12,7 +12,12 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
 - the real-time factor (log duration ÷ wall time of SLAM; ``-`` when the log's stamps are unusable) and by CPU time;
 - loop closures accepted / rejected, and ``false``: accepted closures whose measurement disagrees with a reference
   (the corrected trajectory, or for a relations log under degraded odometry the same log's clean-odometry result)
-  by more than 0.3 m or 0.05 rad.
+  by more than 0.3 m or 0.05 rad;
+- against the same reference, the front end's own bias (``evaluation.edge_bias`` on the keyframe edges as they
+  entered the graph, which loop closures do not change): ``edge_along_pct``, how much longer (+) or shorter (−) the
+  edges are along the direction of travel, and ``edge_heading_deg_per_100m``, their summed heading error per 100 m.
+  A map uniformly smaller than its reference (``ref_scale`` > 1) with edges short by the same fraction is a matter
+  of metric, not of bending.
 ``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
 2°/m, jumps; see ``services/localization/slam/odometry_noise.py``); ``both`` runs clean then degraded and adds the
 ratio of the errors. ``--max-scans`` caps every log (a quick slice), ``--only`` keeps logs whose name contains one of
@@ -51,6 +56,8 @@ class BenchResult:
     closures_rejected: int
     closures_false: int | None
     fallback_matches: int
+    edge_along_pct: float | None
+    edge_heading_deg_per_100m: float | None
     odometry_noise: str
 
 
@@ -102,6 +109,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     the defaults); also returns the laser trajectory (for use as the degraded run's closure reference)."""
     from services.localization.slam.evaluation import (
         aligned_trajectory_error,
+        edge_bias,
         false_closures,
         parse_relations,
         relative_pose_error,
@@ -140,6 +148,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         ate, ate_scaled, scale = fit.rms_m, fit.scaled_rms_m, fit.scale
     accepted = slam.loop_closures
     n_false = None
+    bias = None
     if reference is not None and len(reference) == len(laser):
         kf_scan = slam.keyframe_scan_indices()
         mount = np.broadcast_to(log.sensor_pose, (len(reference), 3))
@@ -149,6 +158,12 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         n_false = int(false_closures(kf_scan[[c.from_ for c in accepted]], kf_scan[[c.to for c in accepted]],
                                      np.array([c.measurement for c in accepted]).reshape(-1, 3),
                                      robot_reference).sum())
+        ks, steps = slam.sequential_edges()
+        if len(ks):
+            try:
+                bias = edge_bias(robot_reference[kf_scan[ks - 1]], robot_reference[kf_scan[ks]], steps)
+            except ValueError:  # no edge long enough to have a direction (a robot turning on the spot)
+                bias = None
     row = BenchResult(
         log=log_path.name, odometry=odometry, scans=run.n_scans, keyframes=slam.n_keyframes,
         translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate, ate_scaled_rms_m=ate_scaled,
@@ -157,7 +172,9 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         realtime_factor_cpu=run.realtime_factor_cpu if log.stamps_from_log else None,
         ms_per_scan=1e3 * run.processing_s / max(run.n_scans, 1),
         closures_accepted=len(accepted), closures_rejected=len(slam.rejected_closures), closures_false=n_false,
-        fallback_matches=slam.fallback_matches, odometry_noise=noise.describe() if noise else "as logged")
+        fallback_matches=slam.fallback_matches, odometry_noise=noise.describe() if noise else "as logged",
+        edge_along_pct=None if bias is None else bias.along_pct,
+        edge_heading_deg_per_100m=None if bias is None else bias.heading_deg_per_100m)
     return row, laser
 
 
@@ -170,14 +187,15 @@ def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
     out = sys.stdout if out is None else out
     header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
               f"{'ate_sim2':>8s} {'ref_scale':>9s} {'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} "
-              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s}")
+              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s} {'edge_%':>7s} {'deg/100m':>8s}")
     print(header, file=out)
     for r in rows:
         print(f"{r.log:34s} {r.odometry:8s} {r.scans:6d} {_fmt(r.translation_error_m, '8.4f')} "
               f"{_fmt(r.rotation_error_rad, '8.4f')} {_fmt(r.ate_rms_m, '7.3f')} {_fmt(r.ate_scaled_rms_m, '8.3f')} "
               f"{_fmt(r.reference_scale, '9.5f')} {_fmt(r.realtime_factor, '6.1f')} "
               f"{_fmt(r.realtime_factor_cpu, '7.1f')} {r.ms_per_scan:7.1f} {r.closures_accepted:5d} "
-              f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d}", file=out)
+              f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d} "
+              f"{_fmt(r.edge_along_pct, '+7.3f')} {_fmt(r.edge_heading_deg_per_100m, '+8.2f')}", file=out)
 
 
 def run_bench(args: argparse.Namespace) -> int:

@@ -337,6 +337,12 @@ class GraphSlam:
         """Index (in input order) of the scan each keyframe was made from."""
         return np.asarray(self._keyframe_scans, dtype=np.intp)
 
+    def sequential_edges(self) -> tuple[np.ndarray, np.ndarray]:
+        """(k (M,), z (M, 3)): each keyframe k > 0 with its front-end measurement z, the pose of k seen from k − 1
+        (the scan match, or the odometry where matching failed), as it entered the graph."""
+        ks = np.array(sorted(self._sequential_edges), dtype=np.intp)
+        return ks, np.array([self._sequential_edges[k][0] for k in ks], float).reshape(-1, 3)
+
     def _scan_pose(self, record: _ScanRecord) -> np.ndarray:
         return compose(self.graph.pose(record.keyframe), record.relative_pose)
 
