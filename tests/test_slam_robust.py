@@ -233,8 +233,17 @@ def test_edge_bias_measures_a_uniform_shortening_and_a_steady_turn_not_zero_mean
     assert bias.n_edges == 199 and bias.path_m == pytest.approx(199 * 0.8)
     assert bias.along_pct == pytest.approx(-0.3, abs=1e-9)
     assert bias.heading_deg_per_100m == pytest.approx(100 * math.degrees(0.001 * 199) / (199 * 0.8), rel=1e-9)
+    turns = np.abs(true_steps[:, 2]) > 0.05
+    expected = 100 * np.sum(0.001 * np.sign(true_steps[turns, 2])) / np.sum(np.abs(true_steps[turns, 2]))
+    assert bias.turn_pct == pytest.approx(expected, rel=1e-9)
+    under_turned = true_steps * np.array([1.0, 1.0, 0.98])  # every turn 2 % short, left and right alike
+    assert edge_bias(reference[:-1], reference[1:], under_turned).turn_pct == pytest.approx(-2.0, rel=1e-9)
+    assert abs(edge_bias(reference[:-1], reference[1:], under_turned).heading_deg_per_100m) < \
+        100 * math.degrees(0.02 * np.abs(true_steps[:, 2]).sum()) / (199 * 0.8)  # partly cancelled in the plain sum
     noisy = true_steps + rng.normal(0.0, [0.01, 0.01, 0.003], true_steps.shape)
     unbiased = edge_bias(reference[:-1], reference[1:], noisy)
     assert abs(unbiased.along_pct) < 0.3 and abs(unbiased.heading_deg_per_100m) < 5.0
     with pytest.raises(ValueError, match="measured edges"):
         edge_bias(reference[:-1], reference[1:], biased[:-1])
+    assert math.isnan(edge_bias(reference[:2], reference[1:3], true_steps[:2] * [1.0, 1.0, 0.0],
+                                min_turn_rad=10.0).turn_pct)

@@ -174,16 +174,21 @@ class EdgeBias:
     along_pct: float
     #: Σ heading error / Σ reference length, in degrees per 100 m (a steady turn of the map against the reference)
     heading_deg_per_100m: float
+    #: Σ heading error · sign(reference turn) / Σ |reference turn| over the edges turning more than ``min_turn_rad``,
+    #: in %: turns measured too small (−) or too large (+), which cancel in the sum above when left and right turns
+    #: alternate (NaN without such an edge)
+    turn_pct: float
     n_edges: int
     path_m: float
 
 
 def edge_bias(reference_from: np.ndarray, reference_to: np.ndarray, measured: np.ndarray, *,
-              min_length_m: float = 0.2) -> EdgeBias:
+              min_length_m: float = 0.2, min_turn_rad: float = 0.05) -> EdgeBias:
     """Bias of ``measured`` relative poses (M, 3) against the reference's relative poses between ``reference_from``
     and ``reference_to`` (M, 3 each): with δ* = from⁻¹ ⊕ to of length ℓ and unit direction u, the along-track error
     is δ_xy·u − ℓ and the heading error wrap(δ_θ − δ*_θ); both are summed and divided by Σℓ. Edges shorter than
-    ``min_length_m`` (turns on the spot) have no direction to measure along and are left out.
+    ``min_length_m`` (turns on the spot) have no direction to measure along and are left out. ``turn_pct`` relates
+    the heading error of every edge turning more than ``min_turn_rad`` to its turn, spot turns included.
 
     A scan matcher whose every edge comes out 0.3 % short gives ``along_pct`` −0.3 whatever the loops, where a
     bent map with unbiased edges gives about 0; summed heading errors show a steady turn the same way."""
@@ -199,8 +204,11 @@ def edge_bias(reference_from: np.ndarray, reference_to: np.ndarray, measured: np
     direction = truth[keep, :2] / length[keep, None]
     along = np.sum(measured[keep, :2] * direction, axis=1) - length[keep]
     heading = wrap_angle(measured[keep, 2] - truth[keep, 2])
+    turning = np.abs(truth[:, 2]) > min_turn_rad
+    turn_error = wrap_angle(measured[turning, 2] - truth[turning, 2]) * np.sign(truth[turning, 2])
+    turn_pct = 100.0 * float(turn_error.sum()) / float(np.abs(truth[turning, 2]).sum()) if turning.any() else math.nan
     return EdgeBias(100.0 * float(along.sum()) / path_m, 100.0 * math.degrees(float(heading.sum())) / path_m,
-                    int(keep.sum()), path_m)
+                    turn_pct, int(keep.sum()), path_m)
 
 
 def false_closures(from_scans: np.ndarray, to_scans: np.ndarray, measurements: np.ndarray, reference: np.ndarray, *,

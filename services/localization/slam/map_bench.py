@@ -15,7 +15,8 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
   by more than 0.3 m or 0.05 rad;
 - against the same reference, the front end's own bias (``evaluation.edge_bias`` on the keyframe edges as they
   entered the graph, which loop closures do not change): ``edge_along_pct``, how much longer (+) or shorter (−) the
-  edges are along the direction of travel, and ``edge_heading_deg_per_100m``, their summed heading error per 100 m.
+  edges are along the direction of travel, ``edge_heading_deg_per_100m``, their summed heading error per 100 m, and
+  ``edge_turn_pct``, how much smaller (−) or larger (+) than the reference's their turns are.
   A map uniformly smaller than its reference (``ref_scale`` > 1) with edges short by the same fraction is a matter
   of metric, not of bending.
 ``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -58,6 +60,7 @@ class BenchResult:
     fallback_matches: int
     edge_along_pct: float | None
     edge_heading_deg_per_100m: float | None
+    edge_turn_pct: float | None
     odometry_noise: str
 
 
@@ -174,7 +177,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         closures_accepted=len(accepted), closures_rejected=len(slam.rejected_closures), closures_false=n_false,
         fallback_matches=slam.fallback_matches, odometry_noise=noise.describe() if noise else "as logged",
         edge_along_pct=None if bias is None else bias.along_pct,
-        edge_heading_deg_per_100m=None if bias is None else bias.heading_deg_per_100m)
+        edge_heading_deg_per_100m=None if bias is None else bias.heading_deg_per_100m,
+        edge_turn_pct=None if bias is None or math.isnan(bias.turn_pct) else bias.turn_pct)
     return row, laser
 
 
@@ -187,7 +191,7 @@ def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
     out = sys.stdout if out is None else out
     header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
               f"{'ate_sim2':>8s} {'ref_scale':>9s} {'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} "
-              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s} {'edge_%':>7s} {'deg/100m':>8s}")
+              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s} {'edge_%':>7s} {'deg/100m':>8s} {'turn_%':>7s}")
     print(header, file=out)
     for r in rows:
         print(f"{r.log:34s} {r.odometry:8s} {r.scans:6d} {_fmt(r.translation_error_m, '8.4f')} "
@@ -195,7 +199,8 @@ def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
               f"{_fmt(r.reference_scale, '9.5f')} {_fmt(r.realtime_factor, '6.1f')} "
               f"{_fmt(r.realtime_factor_cpu, '7.1f')} {r.ms_per_scan:7.1f} {r.closures_accepted:5d} "
               f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d} "
-              f"{_fmt(r.edge_along_pct, '+7.3f')} {_fmt(r.edge_heading_deg_per_100m, '+8.2f')}", file=out)
+              f"{_fmt(r.edge_along_pct, '+7.3f')} {_fmt(r.edge_heading_deg_per_100m, '+8.2f')} "
+              f"{_fmt(r.edge_turn_pct, '+7.2f')}", file=out)
 
 
 def run_bench(args: argparse.Namespace) -> int:
