@@ -17,7 +17,7 @@ takes the estimate onto the reference (1.003: the reference is 0.3 % larger), an
 error after that fit. The rigid figure stays the headline. The fit takes whatever a uniform scale explains: a metric
 mismatch, but also a bend that happens to shrink or stretch the trajectory; it is a metric mismatch when the map's
 edges show the same bias one by one (their along-track length against the reference's): ``edge_bias`` measures that
-on the front end's keyframe edges, which loop closures do not touch.
+on the front end's keyframe edges, whose measurements loop closures do not touch.
 """
 
 from __future__ import annotations

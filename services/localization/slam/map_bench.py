@@ -14,9 +14,9 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
   (the corrected trajectory, or for a relations log under degraded odometry the same log's clean-odometry result)
   by more than 0.3 m or 0.05 rad;
 - against the same reference, the front end's own bias (``evaluation.edge_bias`` on the keyframe edges as they
-  entered the graph, which loop closures do not change): ``edge_along_pct``, how much longer (+) or shorter (−) the
-  edges are along the direction of travel, ``edge_heading_deg_per_100m``, their summed heading error per 100 m, and
-  ``edge_turn_pct``, how much smaller (−) or larger (+) than the reference's their turns are.
+  entered the graph: loop closures move the poses, not these measurements): ``edge_along_pct``, how much longer (+)
+  or shorter (−) the edges are along the direction of travel, ``edge_heading_deg_per_100m``, their summed heading
+  error per 100 m, and ``edge_turn_pct``, how much smaller (−) or larger (+) than the reference's their turns are.
   A map uniformly smaller than its reference (``ref_scale`` > 1) with edges short by the same fraction is a matter
   of metric, not of bending.
 ``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
@@ -28,6 +28,7 @@ the given words, ``--json`` writes the rows, ``--set KEY=VALUE`` (repeatable) ov
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -163,10 +164,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
                                      robot_reference).sum())
         ks, steps = slam.sequential_edges()
         if len(ks):
-            try:
+            with contextlib.suppress(ValueError):  # no edge long enough to have a direction (turning on the spot)
                 bias = edge_bias(robot_reference[kf_scan[ks - 1]], robot_reference[kf_scan[ks]], steps)
-            except ValueError:  # no edge long enough to have a direction (a robot turning on the spot)
-                bias = None
     row = BenchResult(
         log=log_path.name, odometry=odometry, scans=run.n_scans, keyframes=slam.n_keyframes,
         translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate, ate_scaled_rms_m=ate_scaled,
