@@ -163,9 +163,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
                                      np.array([c.measurement for c in accepted]).reshape(-1, 3),
                                      robot_reference).sum())
         ks, steps = slam.sequential_edges()
-        if len(ks):
-            with contextlib.suppress(ValueError):  # no edge long enough to have a direction (turning on the spot)
-                bias = edge_bias(robot_reference[kf_scan[ks - 1]], robot_reference[kf_scan[ks]], steps)
+        with contextlib.suppress(ValueError):  # no edge (long enough) to have a direction: one keyframe, spot turns
+            bias = edge_bias(robot_reference[kf_scan[ks - 1]], robot_reference[kf_scan[ks]], steps)
     row = BenchResult(
         log=log_path.name, odometry=odometry, scans=run.n_scans, keyframes=slam.n_keyframes,
         translation_error_m=trans, rotation_error_rad=rot, ate_rms_m=ate, ate_scaled_rms_m=ate_scaled,
