@@ -247,3 +247,26 @@ def test_edge_bias_measures_a_uniform_shortening_and_a_steady_turn_not_zero_mean
         edge_bias(reference[:-1], reference[1:], biased[:-1])
     assert math.isnan(edge_bias(reference[:2], reference[1:3], true_steps[:2] * [1.0, 1.0, 0.0],
                                 min_turn_rad=10.0).turn_pct)
+
+
+def test_suspect_reference_poses_finds_the_poses_their_own_scans_disagree_with():
+    """A reference trajectory with one pose turned 0.1 rad and one shifted 0.25 m: those two, and no neighbour
+    that shares scans with them, are the poses a closure cannot be judged by."""
+    from services.common.world import World
+    from services.localization.slam.mapper import scan_to_points
+    from services.localization.slam.reference_check import suspect_reference_poses
+    from services.localization.synthetic import Laser, route
+
+    world = World.load_builtin("corridor")
+    laser = Laser(world, beams=361, fov_rad=math.pi, range_max=20.0, rng=np.random.default_rng(1))
+    truth = np.array(list(route([(0.0, 0.0, 0.0), (4.0, 0.1, 0.0), (4.0, 0.1, math.pi / 2), (4.0, 3.2, math.pi / 2),
+                                 (4.0, 3.2, 0.0), (12.0, 3.2, 0.0)], step_m=0.5, step_rad=0.3)))
+    mount = (0.2, 0.0, 0.0)
+    clouds = [scan_to_points(laser.scan(tuple(p), mount), laser.angles, np.array(mount), min_range_m=0.05,
+                             max_range_m=20.0) for p in truth]
+    reference = truth.copy()
+    reference[9, 2] += 0.1
+    reference[20, :2] += [0.25 * math.cos(reference[20, 2]), 0.25 * math.sin(reference[20, 2])]
+    assert suspect_reference_poses(lambda i: clouds[i], truth, range(len(truth))) == set()
+    assert suspect_reference_poses(lambda i: clouds[i], reference, range(len(truth))) == {9, 20}
+    assert suspect_reference_poses(lambda i: clouds[i], reference, [3, 20]) == {20}

@@ -21,9 +21,9 @@ from services.common.se2 import transform_points, wrap_angle
 from services.localization.amcl import Amcl, AmclParams, select_beams
 
 from .logs import LaserLog
-from .mapper import scan_to_points
 from .occupancy import OccupancyGrid
 from .odometry_noise import OdometryNoise, corrupt_poses
+from .offline import scan_points
 
 
 @dataclass
@@ -43,11 +43,7 @@ def render_reference_map(log: LaserLog, resolution_m: float = 0.05, max_range_m:
     """Occupancy map of every scan inserted at its logged (reference) pose."""
     poses = np.array([s.odom_pose for s in log.scans])
     origin = log.sensor_pose[:2]
-    clouds = []
-    for scan in log.scans:
-        points = scan_to_points(scan.ranges_m, scan.angles_rad, log.sensor_pose,
-                                min_range_m=max(scan.min_range_m, 0.05), max_range_m=min(scan.max_range_m, max_range_m))
-        clouds.append(points)
+    clouds = [scan_points(log, i, max_range_m=max_range_m) for i in range(len(log.scans))]
     world = np.concatenate([poses[:, :2]] + [transform_points(pose, points)
                                              for pose, points in zip(poses, clouds, strict=True) if len(points)])
     grid = OccupancyGrid.covering(world.min(axis=0), world.max(axis=0), resolution_m)

@@ -12,7 +12,9 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
 - the real-time factor (log duration ÷ wall time of SLAM; ``-`` when the log's stamps are unusable) and by CPU time;
 - loop closures accepted / rejected, and ``false``: accepted closures whose measurement disagrees with a reference
   (the corrected trajectory, or for a relations log under degraded odometry the same log's clean-odometry result)
-  by more than 0.3 m or 0.05 rad;
+  by more than 0.3 m or 0.05 rad, and of those ``unjudged``: the ones with an end at a reference pose that its own
+  scans disagree with (``reference_check.suspect_reference_poses``: a corrected log's poses are a SLAM result with
+  errors of their own, so such a closure may be right and the reference wrong there);
 - against the same reference, the front end's own bias (``evaluation.edge_bias`` on the keyframe edges as they
   entered the graph: loop closures move the poses, not these measurements): ``edge_along_pct``, how much longer (+)
   or shorter (−) the edges are along the direction of travel, ``edge_heading_deg_per_100m``, their summed heading
@@ -58,6 +60,7 @@ class BenchResult:
     closures_accepted: int
     closures_rejected: int
     closures_false: int | None
+    closures_unjudged: int | None
     fallback_matches: int
     edge_along_pct: float | None
     edge_heading_deg_per_100m: float | None
@@ -121,7 +124,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     )
     from services.localization.slam.logs import read_log
     from services.localization.slam.odometry_noise import OdometryNoise, corrupt_odometry
-    from services.localization.slam.offline import run_slam
+    from services.localization.slam.offline import run_slam, scan_points
+    from services.localization.slam.reference_check import suspect_reference_poses
 
     log = log or read_log(log_path)
     if max_scans is not None:
@@ -151,7 +155,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         fit = aligned_trajectory_error(laser, truth_scans)
         ate, ate_scaled, scale = fit.rms_m, fit.scaled_rms_m, fit.scale
     accepted = slam.loop_closures
-    n_false = None
+    n_false = n_unjudged = None
     bias = None
     if reference is not None and len(reference) == len(laser):
         kf_scan = slam.keyframe_scan_indices()
@@ -159,9 +163,14 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         from services.common.se2 import compose, inverse
 
         robot_reference = compose(reference, inverse(mount))
-        n_false = int(false_closures(kf_scan[[c.from_ for c in accepted]], kf_scan[[c.to for c in accepted]],
-                                     np.array([c.measurement for c in accepted]).reshape(-1, 3),
-                                     robot_reference).sum())
+        from_scans, to_scans = kf_scan[[c.from_ for c in accepted]], kf_scan[[c.to for c in accepted]]
+        flagged = false_closures(from_scans, to_scans, np.array([c.measurement for c in accepted]).reshape(-1, 3),
+                                 robot_reference)
+        n_false = int(flagged.sum())
+        suspect = suspect_reference_poses(lambda i: scan_points(log, i), robot_reference,
+                                          np.concatenate([from_scans[flagged], to_scans[flagged]]))
+        n_unjudged = sum(1 for j, k in zip(from_scans[flagged], to_scans[flagged], strict=True)
+                         if int(j) in suspect or int(k) in suspect)
         ks, steps = slam.sequential_edges()
         with contextlib.suppress(ValueError):  # no edge (long enough) to have a direction: one keyframe, spot turns
             bias = edge_bias(robot_reference[kf_scan[ks - 1]], robot_reference[kf_scan[ks]], steps)
@@ -173,6 +182,7 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
         realtime_factor_cpu=run.realtime_factor_cpu if log.stamps_from_log else None,
         ms_per_scan=1e3 * run.processing_s / max(run.n_scans, 1),
         closures_accepted=len(accepted), closures_rejected=len(slam.rejected_closures), closures_false=n_false,
+        closures_unjudged=n_unjudged,
         fallback_matches=slam.fallback_matches, odometry_noise=noise.describe() if noise else "as logged",
         edge_along_pct=None if bias is None else bias.along_pct,
         edge_heading_deg_per_100m=None if bias is None else bias.heading_deg_per_100m,
@@ -189,14 +199,15 @@ def print_table(rows: list[BenchResult], out: TextIO | None = None) -> None:
     out = sys.stdout if out is None else out
     header = (f"{'log':34s} {'odometry':8s} {'scans':>6s} {'trans_m':>8s} {'rot_rad':>8s} {'ate_m':>7s} "
               f"{'ate_sim2':>8s} {'ref_scale':>9s} {'rtf':>6s} {'rtf_cpu':>7s} {'ms/scan':>7s} {'loops':>5s} "
-              f"{'rej':>4s} {'false':>5s} {'fallbk':>6s} {'edge_%':>7s} {'deg/100m':>8s} {'turn_%':>7s}")
+              f"{'rej':>4s} {'false':>5s} {'unjdg':>5s} {'fallbk':>6s} {'edge_%':>7s} {'deg/100m':>8s} {'turn_%':>7s}")
     print(header, file=out)
     for r in rows:
         print(f"{r.log:34s} {r.odometry:8s} {r.scans:6d} {_fmt(r.translation_error_m, '8.4f')} "
               f"{_fmt(r.rotation_error_rad, '8.4f')} {_fmt(r.ate_rms_m, '7.3f')} {_fmt(r.ate_scaled_rms_m, '8.3f')} "
               f"{_fmt(r.reference_scale, '9.5f')} {_fmt(r.realtime_factor, '6.1f')} "
               f"{_fmt(r.realtime_factor_cpu, '7.1f')} {r.ms_per_scan:7.1f} {r.closures_accepted:5d} "
-              f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {r.fallback_matches:6d} "
+              f"{r.closures_rejected:4d} {_fmt(r.closures_false, '5d')} {_fmt(r.closures_unjudged, '5d')} "
+              f"{r.fallback_matches:6d} "
               f"{_fmt(r.edge_along_pct, '+7.3f')} {_fmt(r.edge_heading_deg_per_100m, '+8.2f')} "
               f"{_fmt(r.edge_turn_pct, '+7.2f')}", file=out)
 

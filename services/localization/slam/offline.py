@@ -2,11 +2,22 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from .logs import LaserLog
 from .mapper import GraphSlam, SlamConfig, scan_to_points
+
+
+def scan_points(log: LaserLog, index: int, *, max_range_m: float = math.inf) -> np.ndarray:
+    """Scan ``index`` of ``log`` as robot-frame hit points, as the mapper gets it: readings within 5 cm (or the
+    scan's own minimum) and beyond the scan's maximum range (or ``max_range_m``) dropped."""
+    scan = log.scans[index]
+    return scan_to_points(scan.ranges_m, scan.angles_rad, log.sensor_pose, min_range_m=max(scan.min_range_m, 0.05),
+                          max_range_m=min(scan.max_range_m, max_range_m))
 
 
 @dataclass
@@ -35,10 +46,8 @@ def run_slam(log: LaserLog, config: SlamConfig | None = None, *, max_scans: int 
     origin = log.sensor_pose[:2]
     start = time.perf_counter()
     start_cpu = time.process_time()
-    for scan in scans:
-        points = scan_to_points(scan.ranges_m, scan.angles_rad, log.sensor_pose,
-                                min_range_m=max(scan.min_range_m, 0.05), max_range_m=scan.max_range_m)
-        slam.add_scan(scan.stamp_s, scan.odom_pose, points, origin)
+    for index, scan in enumerate(scans):
+        slam.add_scan(scan.stamp_s, scan.odom_pose, scan_points(log, index), origin)
     slam.finish()
     elapsed = time.perf_counter() - start
     elapsed_cpu = time.process_time() - start_cpu
