@@ -270,3 +270,22 @@ def test_suspect_reference_poses_finds_the_poses_their_own_scans_disagree_with()
     assert suspect_reference_poses(lambda i: clouds[i], truth, range(len(truth))) == set()
     assert suspect_reference_poses(lambda i: clouds[i], reference, range(len(truth))) == {9, 20}
     assert suspect_reference_poses(lambda i: clouds[i], reference, [3, 20]) == {20}
+
+
+def test_loop_neighbourhoods_are_rebuilt_after_the_graph_moves():
+    """A keyframe's cached loop neighbourhood holds its neighbours where the graph had them: after an optimisation
+    has moved them (a closure bent the chain), a later loop search must see them where they are now."""
+    slam = _chain_graph(40)
+    for keyframe in slam._keyframes:
+        keyframe.points = np.array([[1.0, 0.5], [1.0, -0.5], [2.0, 0.0]])
+    first = slam._loop_grid(5, 20)
+    assert slam._loop_grid(5, 20) is first  # cached while nothing moved
+    poses = slam.graph.poses()
+    slam._accept(LoopClosure(0, 39, compose(between(poses[0], poses[39]), np.array([0.3, 0.0, 0.05])), 0.35))
+    slam.optimize()
+    moved = between(poses[5], poses[10]) - between(slam.graph.poses()[5], slam.graph.poses()[10])
+    assert np.abs(moved).max() > 1e-3  # the neighbourhood of 5 changed shape
+    rebuilt = slam._loop_grid(5, 20)
+    assert rebuilt is not first
+    assert not np.array_equal(rebuilt.levels[0].field, first.levels[0].field) or \
+        not np.allclose(rebuilt.levels[0].origin_xy_m, first.levels[0].origin_xy_m)

@@ -45,7 +45,8 @@ are not searched as if they were uncertain places. A match found only there must
 degenerate one would keep the graph's guess along what it does not fix, and the guess is what is known to be off),
 and it waits like any large correction for a closure of the same revisit to confirm it; it does not pause the normal
 searches, and it keeps its own pace. A keyframe's loop grid (its neighbourhood) is cached only with the neighbours
-it was built from: one built before the path went past it is rebuilt.
+it was built from, and only until the next optimisation: one built before the path went past it, or before a
+closure moved its keyframes, is rebuilt.
 
 Back end: a candidate that agrees with the graph (its correction is below ``loop_trusted_xy_m`` /
 ``loop_trusted_theta_rad``) where the graph is sure of itself (σ_xy(Σ_jk) at most ``loop_trusted_sigma_xy_m``) is
@@ -635,7 +636,8 @@ class GraphSlam:
         """Keyframe ``center``'s neighbourhood (keyframes center ± ``loop_neighbour_keyframes``, none newer than
         ``newest_allowed``) in its frame. A cached grid is reused only when it holds the same keyframes: one built
         while the path had not yet gone past ``center`` lacks the keyframes after it, and a revisit matched against
-        that half neighbourhood misses closures it would have found."""
+        that half neighbourhood misses closures it would have found. ``optimize`` empties the cache: a grid keeps
+        its keyframes where the graph had them when it was built."""
         c = self.config
         hi = min(newest_allowed, center + c.loop_neighbour_keyframes)
         cached = self._loop_grids.get(center)
@@ -858,6 +860,7 @@ class GraphSlam:
         self._loops_since_optimize = 0
         self._correction_since_optimize = 0.0
         self._submap = None
+        self._loop_grids.clear()  # built from the poses before: a neighbourhood a closure just bent is stale
 
     def finish(self) -> None:
         """Settle pending loop closures (confirmed or rejected) and optimise after the last scan."""
