@@ -75,7 +75,7 @@ from services.common.se2 import between, compose, inverse, transform_points, wra
 from . import search_gate
 from .constraint import FULLY_CONSTRAINED, MatchConstraint, match_constraint
 from .likelihood import MultiResolutionGrid
-from .matcher import MatchResult, correlative_search, refine, score, translation_curvature
+from .matcher import MatchResult, refine, score, search_and_refine, translation_curvature
 from .occupancy import OccupancyGrid
 from .odometry_calibration import OdometryCalibration
 from .pose_graph import PoseGraph
@@ -410,15 +410,11 @@ class GraphSlam:
         # a large (possibly wrong) odometry step cannot pull the match back
         window_theta = c.rescue_window_theta_rad + 0.5 * abs(turn_rad) + c.rescue_theta_per_m * dist
         window_xy = c.rescue_window_xy_m + c.rescue_window_per_m * dist
-        candidates = correlative_search(self._submap.levels[-1], points, predicted,
-                                        window_xy_m=window_xy, window_theta_rad=window_theta,
-                                        theta_step_rad=0.02, n_best=3)
-        best = result
-        for _, pose in candidates:
-            trial = refine(self._submap, points, pose, prior_pose=predicted, prior_information=self._motion_prior(step),
-                           point_weights=weights)
-            if trial.score > best.score + 0.02:
-                best = trial
+        best = search_and_refine(self._submap, points, predicted, window_xy_m=window_xy,
+                                 window_theta_rad=window_theta, theta_step_rad=0.02, n_best=3,
+                                 incumbent=result, min_gain=0.02, prior_pose=predicted,
+                                 prior_information=self._motion_prior(step), point_weights=weights)
+        assert best is not None  # the incumbent at worst
         if best.score >= c.min_match_score:
             if best is not result:
                 self.rescued_matches += 1
@@ -712,13 +708,8 @@ class GraphSlam:
                 if k - self._last_search[widened] < c.loop_search_every_keyframes:
                     continue
                 self._last_search[widened] = k
-                best: MatchResult | None = None
-                for _, pose in correlative_search(grid.levels[-1], points, guess, window_xy_m=search_xy,
-                                                  window_theta_rad=search_theta,
-                                                  theta_step_rad=c.loop_theta_step_rad, n_best=4):
-                    trial = refine(grid, points, pose)
-                    if best is None or trial.score > best.score:
-                        best = trial
+                best = search_and_refine(grid, points, guess, window_xy_m=search_xy, window_theta_rad=search_theta,
+                                         theta_step_rad=c.loop_theta_step_rad, n_best=4)
                 best_curvature = None if best is None else self._loop_curvature(grid, points, best, guess,
                                                                                 search_xy, search_theta)
                 if best is not None and best_curvature is not None and not (

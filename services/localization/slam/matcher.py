@@ -6,7 +6,8 @@ with ∂M/∂ξ = ∇M · [I₂ | (-s_y + t_y, s_x - t_x)ᵀ] for s = T(ξ) p. T
 estimate in place along directions the scan does not constrain (long corridors).
 
 ``correlative_search``: exhaustive search over a window of rotations and cell offsets on a coarse level
-(Olson 2009), scoring the mean grid value at the scan's points; its best candidates are then refined.
+(Olson 2009), scoring the mean grid value at the scan's points; ``search_and_refine`` refines its best candidates
+and keeps the best-scoring result.
 """
 
 from __future__ import annotations
@@ -159,3 +160,22 @@ def correlative_search(grid: LikelihoodGrid, points: np.ndarray, center_pose: np
         best.append((float(scores[k]), pose))
     best.sort(key=lambda item: -item[0])
     return best[:n_best]
+
+
+def search_and_refine(grids: MultiResolutionGrid, points: np.ndarray, center_pose: np.ndarray, *,
+                      window_xy_m: float, window_theta_rad: float, theta_step_rad: float, n_best: int,
+                      incumbent: MatchResult | None = None, min_gain: float = 0.0,
+                      prior_pose: np.ndarray | None = None, prior_information: np.ndarray | None = None,
+                      point_weights: np.ndarray | None = None) -> MatchResult | None:
+    """``correlative_search`` on the coarsest level of ``grids``, each of its ``n_best`` candidates ``refine``d
+    (with the given prior and weights), and the best kept: a candidate replaces the best so far (``incumbent`` at
+    first) only when it scores more than ``min_gain`` higher. None when there was no incumbent and no candidate."""
+    best = incumbent
+    for _, pose in correlative_search(grids.levels[-1], points, center_pose, window_xy_m=window_xy_m,
+                                      window_theta_rad=window_theta_rad, theta_step_rad=theta_step_rad,
+                                      n_best=n_best):
+        trial = refine(grids, points, pose, prior_pose=prior_pose, prior_information=prior_information,
+                       point_weights=point_weights)
+        if best is None or trial.score > best.score + min_gain:
+            best = trial
+    return best

@@ -21,7 +21,7 @@ import numpy as np
 from services.common.se2 import between, transform_points, wrap_angle
 
 from .likelihood import MultiResolutionGrid
-from .matcher import correlative_search, refine, score
+from .matcher import refine, score, search_and_refine
 
 
 def suspect_reference_poses(points_of: Callable[[int], np.ndarray], reference: np.ndarray, scans: Iterable[int], *,
@@ -42,13 +42,9 @@ def suspect_reference_poses(points_of: Callable[[int], np.ndarray], reference: n
             continue
         grid = MultiResolutionGrid.from_points(np.concatenate(clouds), resolution_m, levels)
         identity = np.zeros(3)
-        best = refine(grid, points, identity)
-        for _, pose in correlative_search(grid.levels[-1], points, identity, window_xy_m=window_xy_m,
-                                          window_theta_rad=window_theta_rad, theta_step_rad=theta_step_rad,
-                                          n_best=4):
-            trial = refine(grid, points, pose)
-            if trial.score > best.score:
-                best = trial
+        best = search_and_refine(grid, points, identity, window_xy_m=window_xy_m, window_theta_rad=window_theta_rad,
+                                 theta_step_rad=theta_step_rad, n_best=4, incumbent=refine(grid, points, identity))
+        assert best is not None  # the incumbent at worst
         moved = (float(np.hypot(best.pose[0], best.pose[1])) > max_xy_m
                  or abs(float(wrap_angle(best.pose[2]))) > max_theta_rad)
         if moved and best.score >= score(grid.levels[0], points, identity) + min_gain:
