@@ -193,17 +193,6 @@ def test_mount_offset_does_not_change_the_result(logs_dir):
     assert abs(occupied[0] - occupied[1]) < 0.05 * occupied[0]
 
 
-def test_mount_is_composed_along_the_static_transform_chain():
-    from services.localization.slam.logs import mount_from_transforms
-
-    fixed = {"laser": ("laser_mount", np.array([0.1, 0.0, math.pi / 2])),
-             "laser_mount": ("base_link", np.array([0.12, 0.02, 0.0])),
-             "base_link": ("base_footprint", np.array([0.5, 0.0, 0.0]))}
-    np.testing.assert_allclose(mount_from_transforms("laser", fixed, "base_link"), [0.22, 0.02, math.pi / 2])
-    np.testing.assert_allclose(mount_from_transforms("laser", fixed, None), [0.72, 0.02, math.pi / 2])
-    np.testing.assert_allclose(mount_from_transforms("other", fixed, "base_link"), [0.0, 0.0, 0.0])
-
-
 def test_a_reference_in_another_metric_shows_as_scale_not_as_scaled_error():
     """A map uniformly 0.4 % smaller than its reference: the rigid error grows with the extent, the Sim(2) fit
     recovers the scale and leaves nothing."""

@@ -13,6 +13,9 @@ Mapping (topic name after ``agv/<id>/`` -> bag topic ``/<name>``):
 - every other zagv message (``wheels``, ``nav/status``, ``sim/ground_truth``, ...) -> ``zagv_msgs/msg/Message``:
   the proto type name, the message as JSON (readable in any viewer) and its exact msgpack bytes (lossless).
 
+From a ROS bag, a LaserScan's ``mount`` is composed along the fixed transforms up to base_link, and a scanner
+hung upside down (roll π) has its scan re-expressed upright (``services/common/laser_mount.py``).
+
 Planar poses become quaternions about z: q = (0, 0, sin θ/2, cos θ/2); θ = atan2(2(wz + xy), 1 − 2(y² + z²)).
 3x3 covariances over (x, y, θ) sit at rows/columns (0, 1, 5) of the 6x6 ROS covariance.
 """
@@ -31,6 +34,7 @@ from rosbags.typesys.store import Typestore
 from proto import codec
 from proto import messages as m
 from proto.registry import TOPICS
+from services.common.laser_mount import Transform3D, planar_mount, upright_scan
 from services.common.se2 import quaternion_to_yaw, yaw_to_quaternion
 
 #: the lossless carrier of zagv-only messages
@@ -238,7 +242,9 @@ class RosDecoder:
     """ROS message -> ``(zagv topic name, message)`` items. Keeps the laser mount from ``/tf_static`` (or ``/tf``)
     so that a replayed LaserScan carries it, as the live lidar service does."""
 
-    mounts: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    #: child frame -> (parent, transform) of every fixed transform seen (``/tf_static``, and ``/tf`` outside the
+    #: odom and map frames): the laser mount is composed along them up to ``base_link``
+    transforms: dict[str, tuple[str, Transform3D]] = field(default_factory=dict)
 
     def decode(self, topic: str, msgtype: str, msg: Any) -> list[tuple[str, m.Message]]:
         name = topic.lstrip("/")
@@ -247,15 +253,21 @@ class RosDecoder:
             return [(name, codec.decode_as(t, bytes(np.asarray(msg.msgpack, np.uint8)), topic))]
         if msgtype == "sensor_msgs/msg/LaserScan":
             frame = _frame(msg.header.frame_id)
-            mx, my, mt = self.mounts.get(frame, (0.0, 0.0, 0.0))
+            mount = planar_mount(frame, self.transforms, "base_link")
+            angle_min, angle_max = float(msg.angle_min), float(msg.angle_max)
+            ranges, intensities = np.asarray(msg.ranges, "<f4"), np.asarray(msg.intensities, "<f4")
+            if mount.upside_down:  # re-expressed as the upright scan it equals (services/common/laser_mount.py)
+                increment = float(msg.angle_increment)
+                angle_min, ranges = upright_scan(angle_min, increment, ranges)
+                angle_max = angle_min + (len(ranges) - 1) * increment
+                intensities = intensities[::-1].copy()
             return [(name, m.LaserScan(
-                stamp=_time_s(msg.header.stamp), frame=frame, angle_min=float(msg.angle_min),
-                angle_max=float(msg.angle_max), angle_increment=float(msg.angle_increment),
+                stamp=_time_s(msg.header.stamp), frame=frame, angle_min=angle_min,
+                angle_max=angle_max, angle_increment=float(msg.angle_increment),
                 time_increment=float(msg.time_increment), scan_time=float(msg.scan_time),
                 range_min=float(msg.range_min), range_max=float(msg.range_max),
-                ranges=np.asarray(msg.ranges, "<f4").tobytes(),
-                intensities=np.asarray(msg.intensities, "<f4").tobytes(),
-                mount=m.Pose2D(x=mx, y=my, theta=mt)))]
+                ranges=ranges.tobytes(), intensities=intensities.tobytes(),
+                mount=m.Pose2D(x=mount.x_m, y=mount.y_m, theta=mount.theta_rad)))]
         if msgtype == "nav_msgs/msg/Odometry":
             p, tw = msg.pose.pose, msg.twist.twist
             return [(name, m.Odometry(
@@ -269,10 +281,11 @@ class RosDecoder:
             out: list[tuple[str, m.Message]] = []
             for tf in msg.transforms:
                 parent, child = _frame(tf.header.frame_id), _frame(tf.child_frame_id)
-                tr = tf.transform.translation
-                pose = (float(tr.x), float(tr.y), _yaw(tf.transform.rotation))
-                if parent == "base_link" and child not in ("odom", "map"):
-                    self.mounts[child] = pose
+                tr, q = tf.transform.translation, tf.transform.rotation
+                pose = (float(tr.x), float(tr.y), _yaw(q))
+                if parent not in ("odom", "map") and child not in ("odom", "map"):
+                    self.transforms[child] = (parent, Transform3D((float(tr.x), float(tr.y), float(tr.z)),
+                                                                  (float(q.x), float(q.y), float(q.z), float(q.w))))
                 elif parent == "map" and child == "odom" and topic == "/tf":
                     out.append(("tf/map_odom", m.Transform2D(stamp=_time_s(tf.header.stamp), parent=parent,
                                                              child=child, x=pose[0], y=pose[1], theta=pose[2])))

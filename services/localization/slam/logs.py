@@ -12,7 +12,8 @@ tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timesta
 writes them in time order); a log whose stamps do not increase strictly (some published logs carry truncated or
 zero stamps) gets its scan index as stamp and ``stamps_from_log = False``.
 Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or ``/tf`` odom→base),
-interpolated at each scan stamp, and the laser mount from ``/tf_static``.
+interpolated at each scan stamp, and the laser mount from ``/tf_static`` (composed along its chain of frames; a laser
+hung upside down has its scans re-expressed upright: ``services/common/laser_mount.py``).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from services.common.laser_mount import Transform3D, planar_mount, upright_scan
 from services.common.se2 import between, compose, interpolate, inverse, wrap_angle
 
 CARMEN_MAX_RANGE_M = 80.0
@@ -159,21 +161,6 @@ def _stamp(header) -> float:
     return header.stamp.sec + header.stamp.nanosec * 1e-9
 
 
-def mount_from_transforms(laser_frame: str, fixed: dict[str, tuple[str, np.ndarray]],
-                          base_frame: str | None) -> np.ndarray:
-    """Laser pose (x, y, theta) in the robot's base frame: the fixed transforms (child -> (parent, pose)) composed
-    from ``laser_frame`` up to ``base_frame`` (or to the top of the chain when the base frame is not on it)."""
-    pose = np.zeros(3)
-    frame = laser_frame
-    seen = set()
-    while frame != base_frame and frame in fixed and frame not in seen:
-        seen.add(frame)
-        parent, step = fixed[frame]
-        pose = compose(step, pose)
-        frame = parent
-    return pose
-
-
 def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None = None) -> LaserLog:
     """Scans and odometry of a ROS 1 (or ROS 2) bag, read with ``rosbags`` (no ROS installation needed)."""
     from rosbags.highlevel import AnyReader
@@ -191,8 +178,8 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
         odom_stamps: list[float] = []
         odom_poses: list[tuple[float, float, float]] = []
         tf_odom: list[tuple[float, float, float, float]] = []
-        static: dict[str, tuple[str, np.ndarray]] = {}
-        dynamic: dict[str, tuple[str, np.ndarray]] = {}
+        static: dict[str, tuple[str, Transform3D]] = {}
+        dynamic: dict[str, tuple[str, Transform3D]] = {}
         base_frames: list[str] = []
         for conn, _, raw in reader.messages(connections=scan_conns + odom_conns + tf_conns):
             msg: Any = reader.deserialize(raw, conn.msgtype)
@@ -206,18 +193,18 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
                 odom_poses.append((p.position.x, p.position.y, _yaw(p.orientation)))
             else:
                 for tf in msg.transforms:
-                    t = tf.transform.translation
-                    pose = np.array([t.x, t.y, _yaw(tf.transform.rotation)])
+                    t, q = tf.transform.translation, tf.transform.rotation
                     child, parent = tf.child_frame_id.lstrip("/"), tf.header.frame_id.lstrip("/")
+                    transform = Transform3D((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
                     if conn.topic == "/tf_static":
-                        static[child] = (parent, pose)
+                        static[child] = (parent, transform)
                     elif parent == "odom":
                         if not odom_conns:
-                            tf_odom.append((_stamp(tf.header), *pose))
+                            tf_odom.append((_stamp(tf.header), t.x, t.y, _yaw(q)))
                             if not base_frames:
                                 base_frames.append(child)
                     elif child not in dynamic:
-                        dynamic[child] = (parent, pose)  # a mount some bags publish on /tf instead of /tf_static
+                        dynamic[child] = (parent, transform)  # a mount some bags publish on /tf, not /tf_static
     if not odom_stamps:
         if not tf_odom:
             raise ValueError(f"{path}: no nav_msgs/Odometry topic and no odom transform in /tf")
@@ -229,12 +216,19 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
     o_stamps = o_stamps[order]
     o_poses = np.asarray(odom_poses, float)[order]
     laser_frame = raw_scans[0].header.frame_id.lstrip("/") if raw_scans else ""
-    sensor_pose = mount_from_transforms(laser_frame, {**dynamic, **static}, base_frames[0] if base_frames else None)
+    try:
+        mount = planar_mount(laser_frame, {**dynamic, **static}, base_frames[0] if base_frames else None)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    sensor_pose = mount.pose
     scans = []
     for msg in raw_scans:
         stamp = _stamp(msg.header)
         ranges = np.asarray(msg.ranges, float)
-        angles = msg.angle_min + np.arange(len(ranges)) * msg.angle_increment
+        angle_min = float(msg.angle_min)
+        if mount.upside_down:  # the scan as the upright one it equals (services/common/laser_mount.py)
+            angle_min, ranges = upright_scan(angle_min, float(msg.angle_increment), ranges)
+        angles = angle_min + np.arange(len(ranges)) * msg.angle_increment
         odom = interpolate(o_stamps, o_poses, stamp)[0]
         scans.append(LaserScanRecord(stamp, ranges, angles, odom, float(msg.range_min), float(msg.range_max)))
     scans.sort(key=lambda s: s.stamp_s)
