@@ -39,6 +39,51 @@ def test_carmen_front_laser_offset_and_unusable_stamps():
         parse_carmen([bad])
 
 
+def test_raw_carmen_laser_records_take_the_odometry_at_their_stamp():
+    """A log of RAWLASER1 and ODOM records only: each scan gets the odometry interpolated at its stamp; a scan
+    outside the odometry's time is left out, and scans with no ODOM record at all are an error naming both."""
+    scan = "RAWLASER1 0 -1.5708 3.14159 0.0174533 81.9 0.01 0 5 1 2 3 4 5 0 {t} host {t}"
+    lines = ["ODOM 0 0 0 0.5 0 0 100.0 host 100.0", scan.format(t=99.5),  # before the first ODOM: left out
+             scan.format(t=100.25), "ODOM 1 0 0.4 0.5 0 0 101.0 host 101.0", scan.format(t=100.75),
+             "ODOM 1 2 0.4 0.5 0 0 102.0 host 102.0", scan.format(t=101.5)]
+    log = parse_carmen(lines)
+    assert [s.stamp_s for s in log.scans] == [100.25, 100.75, 101.5]
+    np.testing.assert_allclose([s.odom_pose for s in log.scans], [[0.25, 0, 0.1], [0.75, 0, 0.3], [1, 1, 0.4]])
+    np.testing.assert_allclose(log.scans[0].angles_rad, -1.5708 + np.arange(5) * 3.14159 / 4)
+    np.testing.assert_allclose(log.scans[0].ranges_m, [1, 2, 3, 4, 5])
+    with pytest.raises(ValueError, match="3 RAWLASER1 scans but no ODOM record"):
+        parse_carmen([scan.format(t=1.0), scan.format(t=2.0), scan.format(t=3.0)])
+
+
+def test_a_real_log_as_raw_records_reads_as_its_flaser_lines(logs_dir):
+    """MIT CSAIL's FLASER lines rewritten as the raw records a CARMEN logger also writes (RAWLASER1 with the
+    scan, ODOM with the odometry, half a scan interval apart): the same scans at the same odometry."""
+    flaser = [line for line in (logs_dir / "mit-csail.clf").read_text().splitlines() if line.startswith("FLASER")]
+    flaser = flaser[:400]
+    raw: list[str] = []
+    previous = None
+    for line in flaser:
+        f = line.split()
+        n = int(f[1])
+        odom, stamp = f[5 + n:8 + n], float(f[8 + n])
+        if previous is not None:  # an ODOM record between two scans, on the straight line between their poses
+            (x0, y0, t0), s0 = previous
+            mid = [(float(a) + float(b)) / 2 for a, b in zip((x0, y0), odom[:2], strict=True)]
+            turn = math.remainder(float(odom[2]) - float(t0), 2 * math.pi)
+            raw.append(f"ODOM {mid[0]} {mid[1]} {float(t0) + turn / 2} 0 0 0 {(s0 + stamp) / 2} host 0")
+        raw.append(f"ODOM {' '.join(odom)} 0 0 0 {stamp} host 0")
+        raw.append(f"RAWLASER1 0 {-math.pi / 2} {math.pi} {math.pi / (n - 1)} 81.91 0.01 0 {n} "
+                   f"{' '.join(f[2:2 + n])} 0 {stamp} host 0")
+        previous = (odom, stamp)
+    original, rewritten = parse_carmen(flaser), parse_carmen(raw)
+    assert len(rewritten.scans) == len(original.scans) == 400
+    for a, b in zip(original.scans, rewritten.scans, strict=True):
+        assert a.stamp_s == b.stamp_s
+        np.testing.assert_allclose(b.odom_pose, a.odom_pose, atol=1e-9)
+        np.testing.assert_allclose(b.angles_rad, a.angles_rad, atol=1e-9)
+        np.testing.assert_array_equal(b.ranges_m, a.ranges_m)
+
+
 def test_odometry_corruption_is_seeded_and_as_documented():
     # 100 m straight along x in 0.1 m steps
     truth = np.stack([np.arange(1001) * 0.1, np.zeros(1001), np.zeros(1001)], axis=1)

@@ -8,7 +8,11 @@ log's "no return" code, its largest reading when that recurs, is found from the 
 ``ROBOTLASER1 type start_angle fov resolution max_range
 accuracy remission_mode n r_1..r_n m rem_1..rem_m laser_x laser_y laser_theta robot_x robot_y robot_theta
 tv rv forward_safety side_safety turn_axis ipc_timestamp hostname logger_timestamp`` (the mount is
-``robot_pose⁻¹ ⊕ laser_pose``); the stamp is the IPC timestamp. CARMEN records stay in file order (the logger
+``robot_pose⁻¹ ⊕ laser_pose``); a log with neither (raw records only) is read from its ``RAWLASER1 type start_angle
+fov resolution max_range accuracy remission_mode n r_1..r_n m rem_1..rem_m ipc_timestamp ...`` front-laser lines,
+each placed at the odometry of its ``ODOM x y theta tv rv accel ipc_timestamp ...`` lines interpolated at its stamp
+(a log that has FLASER or ROBOTLASER1 lines uses those: its RAWLASER1 lines are the same scans); the stamp is the
+IPC timestamp. CARMEN records stay in file order (the logger
 writes them in time order); a log whose stamps do not increase strictly (some published logs carry truncated or
 zero stamps) gets its scan index as stamp and ``stamps_from_log = False``.
 Bags: ``sensor_msgs/LaserScan`` (header stamps) with odometry from ``nav_msgs/Odometry`` (or ``/tf`` odom→base),
@@ -94,6 +98,8 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
     scans: list[LaserScanRecord] = []
     front_offset_m = 0.0
     mounts: list[np.ndarray] = []
+    raw_scans: list[LaserScanRecord] = []
+    odometry: list[tuple[float, float, float, float]] = []  # (stamp, x, y, theta) of the ODOM lines
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields:
@@ -109,6 +115,16 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 stamp = float(rest[6])
                 angles = -np.pi / 2 + np.arange(n) * flaser_angle_increment_rad(n)
                 scans.append(LaserScanRecord(stamp, ranges, angles, odom))
+            elif fields[0] == "RAWLASER1":  # the front laser's own record: no pose, odometry from ODOM lines
+                start, fov, max_range = float(fields[2]), float(fields[3]), float(fields[5])
+                n = int(fields[8])
+                ranges = np.array(fields[9:9 + n], float)
+                n_rem = int(fields[9 + n])
+                stamp = float(fields[10 + n + n_rem])
+                angles = start + np.arange(n) * (fov / max(n - 1, 1))
+                raw_scans.append(LaserScanRecord(stamp, ranges, angles, np.zeros(3), max_range_m=max_range))
+            elif fields[0] == "ODOM":
+                odometry.append((float(fields[7]), float(fields[1]), float(fields[2]), float(fields[3])))
             elif fields[0] == "ROBOTLASER1":
                 start, fov, max_range = float(fields[2]), float(fields[3]), float(fields[5])
                 n = int(fields[8])
@@ -123,6 +139,8 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
+    if not scans and raw_scans:  # a log of raw laser and odometry records only
+        scans = _with_odometry(raw_scans, odometry)
     sensor_pose = np.array([front_offset_m, 0.0, 0.0])
     if mounts:
         mount = np.median(np.array(mounts), axis=0)
@@ -141,6 +159,23 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
         for k, scan in enumerate(scans):
             scan.stamp_s = float(k)
     return LaserLog(scans, sensor_pose, from_log)
+
+
+def _with_odometry(raw_scans: list[LaserScanRecord], odometry: list[tuple[float, float, float, float]]
+                   ) -> list[LaserScanRecord]:
+    """RAWLASER1 scans with the ODOM pose interpolated at each scan's stamp; scans before the first or after the last
+    ODOM record are left out (their odometry is unknown)."""
+    if not odometry:
+        raise ValueError(f"CARMEN log has {len(raw_scans)} RAWLASER1 scans but no ODOM record to place them")
+    table = np.array(sorted(odometry), float)
+    inside = [s for s in raw_scans if table[0, 0] <= s.stamp_s <= table[-1, 0]]
+    if not inside:
+        raise ValueError(f"CARMEN log: none of its {len(raw_scans)} RAWLASER1 scans lies within the time of its ODOM "
+                         f"records ({table[0, 0]:.3f}-{table[-1, 0]:.3f} s)")
+    poses = interpolate(table[:, 0], table[:, 1:], np.array([s.stamp_s for s in inside]))
+    for scan, pose in zip(inside, poses, strict=True):
+        scan.odom_pose = pose
+    return inside
 
 
 def with_mount(log: LaserLog, sensor_pose: np.ndarray) -> LaserLog:
