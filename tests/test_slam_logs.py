@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import numpy as np
@@ -79,3 +80,59 @@ def test_map_build_and_eval_commands(logs_dir, tmp_path, capsys):
     assert figures["n_relations"] > 20 and figures["n_missing"] > 0  # only the first scans were mapped
     assert 0 <= figures["translation_mean_m"] < 0.1
     assert "translational error" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_a_ros2_bag_reads_as_the_ros1_bag_it_was_converted_from(logs_dir, tmp_path, storage):
+    """MIT CSAIL's first 200 scans and their odometry written as a ROS 2 bag (MCAP, and sqlite3 without message
+    definitions, as ROS 2 before Iron writes it): ``read_log`` takes its folder or its storage file and gives the
+    ROS 1 bag's scans."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    t = store.types
+    source = logs_dir / "mit-csail.orig.bag"
+    folder = tmp_path / f"csail-{storage}"
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with AnyReader([source]) as reader, Writer(folder, version=8, storage_plugin=plugin) as writer:
+        scan_conn = next(c for c in reader.connections if c.msgtype == "sensor_msgs/msg/LaserScan")
+        odom_conn = next(c for c in reader.connections if c.msgtype == "nav_msgs/msg/Odometry")
+        out = {c.id: writer.add_connection("/" + c.topic.strip("/"), c.msgtype, typestore=store)
+               for c in (scan_conn, odom_conn)}
+        scans = 0
+        for conn, stamp_ns, raw in reader.messages(connections=[scan_conn, odom_conn]):
+            if conn is scan_conn:
+                if scans == 200:
+                    continue
+                scans += 1
+            msg = reader.deserialize(raw, conn.msgtype)
+            header = t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](
+                sec=msg.header.stamp.sec, nanosec=msg.header.stamp.nanosec), frame_id=msg.header.frame_id)
+            if conn is scan_conn:
+                fields = {k: getattr(msg, k) for k in ("angle_min", "angle_max", "angle_increment", "time_increment",
+                                                       "scan_time", "range_min", "range_max", "ranges", "intensities")}
+                ros2 = t["sensor_msgs/msg/LaserScan"](header=header, **fields)
+            else:
+                ros2 = t["nav_msgs/msg/Odometry"](header=header, child_frame_id=msg.child_frame_id,
+                                                  pose=msg.pose, twist=msg.twist)
+            writer.write(out[conn.id], stamp_ns, store.serialize_cdr(ros2, conn.msgtype))
+    files = [p for p in folder.iterdir() if p.suffix in (".mcap", ".db3")]
+    if storage == "sqlite3":  # as ROS 2 before Iron writes it: no message definitions in the bag
+        import sqlite3
+
+        with contextlib.closing(sqlite3.connect(files[0])) as db, db:
+            db.execute("DELETE FROM message_definitions")
+    original = read_log(source)
+    for path in (folder, files[0]):
+        converted = read_log(path)
+        assert len(converted.scans) == 200
+        np.testing.assert_allclose(converted.sensor_pose, original.sensor_pose)
+        for a, b in zip(original.scans[:200], converted.scans, strict=True):
+            assert b.stamp_s == pytest.approx(a.stamp_s, abs=1e-9)
+            np.testing.assert_allclose(b.odom_pose, a.odom_pose, atol=1e-9)
+            np.testing.assert_array_equal(b.ranges_m, a.ranges_m)
+    (folder / "metadata.yaml").unlink()
+    with pytest.raises(ValueError, match="metadata.yaml"):
+        read_log(files[0])

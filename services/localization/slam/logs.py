@@ -1,4 +1,4 @@
-"""Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs and ROS 1 ``.bag`` files.
+"""Readers for 2-D laser logs with odometry: CARMEN ``.clf`` text logs, ROS 1 ``.bag`` files and ROS 2 bags.
 
 CARMEN: ``FLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_timestamp hostname logger_timestamp``
 (beams from -90° at CARMEN's ``carmen_laser_get_angle_increment``: 1° for 180 and 181 beams, 0.5° for 360 and 361,
@@ -199,8 +199,11 @@ def _stamp(header) -> float:
 def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None = None) -> LaserLog:
     """Scans and odometry of a ROS 1 (or ROS 2) bag, read with ``rosbags`` (no ROS installation needed)."""
     from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
 
-    with AnyReader([Path(path)]) as reader:
+    # a ROS 2 bag that does not carry its message definitions (sqlite3 before Iron) is read with Humble's
+    # a ROS 2 bag that does not carry its message definitions (sqlite3 before Iron) is read with Humble's
+    with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
         scan_conns = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/LaserScan"
                       and (scan_topic is None or c.topic == scan_topic)]
         if not scan_conns:
@@ -272,12 +275,20 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
 
 
 def read_log(path: str | Path) -> LaserLog:
-    """A ``.clf`` (CARMEN, optionally ``.gz``) or ``.bag`` log."""
+    """A ``.clf`` (CARMEN, optionally ``.gz``) or ``.bag`` log, or a ROS 2 bag (its folder, or a ``.mcap`` /
+    ``.db3`` file in it next to its ``metadata.yaml``)."""
     path = Path(path)
+    if path.is_dir() and (path / "metadata.yaml").is_file():
+        return read_bag(path)
     if not path.is_file():
         raise FileNotFoundError(f"log not found: {path}")
     if path.suffix == ".bag":
         return read_bag(path)
+    if path.suffix in (".mcap", ".db3"):
+        if not (path.parent / "metadata.yaml").is_file():
+            raise ValueError(f"{path}: a ROS 2 bag file is read with the metadata.yaml of its folder, and "
+                             f"{path.parent} has none")
+        return read_bag(path.parent)
     if path.name.endswith((".clf", ".log", ".clf.gz", ".log.gz")):
         if path.suffix == ".gz":
             import gzip
@@ -286,4 +297,5 @@ def read_log(path: str | Path) -> LaserLog:
                 return parse_carmen(f)
         with path.open() as f:
             return parse_carmen(f)
-    raise ValueError(f"unsupported log format {path.name!r}: expected a CARMEN .clf/.log or a ROS .bag")
+    raise ValueError(f"unsupported log format {path.name!r}: expected a CARMEN .clf/.log, a ROS 1 .bag or a ROS 2 "
+                     f"bag folder")
