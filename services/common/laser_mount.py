@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from services.common.se2 import yaw_to_quaternion
+
 #: the scan plane may tilt this much from the base plane (a mount's roll or pitch) and still count as level
 MAX_TILT_RAD = math.radians(10.0)
 
@@ -32,7 +34,7 @@ class Transform3D:
 
     @classmethod
     def planar(cls, x_m: float, y_m: float, theta_rad: float) -> Transform3D:
-        return cls((x_m, y_m, 0.0), (0.0, 0.0, math.sin(theta_rad / 2), math.cos(theta_rad / 2)))
+        return cls((x_m, y_m, 0.0), yaw_to_quaternion(theta_rad))
 
 
 @dataclass(frozen=True)
