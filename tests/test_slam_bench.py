@@ -99,3 +99,24 @@ def test_map_bench_set_overrides_slam_config_fields():
     for bad in (["submap_keyframes"], ["no_such_field=1"], ["submap_keyframes=\"many\""]):
         with pytest.raises(ValueError):
             parse_overrides(bad)
+
+
+def test_map_bench_finds_ros2_bag_folders_and_their_relations(tmp_path):
+    """A ROS 2 bag is a folder (``metadata.yaml`` and its storage files): the bench lists the folder once, never the
+    ``.mcap``/``.db3`` inside, and reads its relations from ``NAME.relations`` beside it."""
+    from services.localization.slam.map_bench import find_logs, relations_for
+
+    (tmp_path / "intel.clf").write_text("")
+    (tmp_path / "intel.relations").write_text("")
+    hospital = tmp_path / "sub" / "hospital"
+    hospital.mkdir(parents=True)
+    (hospital / "metadata.yaml").write_text("")
+    (hospital / "hospital_0.mcap").write_text("")
+    (hospital / "hospital_0.db3").write_text("")
+    (tmp_path / "sub" / "hospital.relations").write_text("")
+    (tmp_path / "notes.txt").write_text("")
+    assert find_logs(tmp_path) == [tmp_path / "intel.clf", hospital]
+    assert relations_for(hospital) == tmp_path / "sub" / "hospital.relations"
+    assert relations_for(tmp_path / "intel.clf") == tmp_path / "intel.relations"
+    (tmp_path / "sub" / "hospital.relations").unlink()
+    assert relations_for(hospital) is None

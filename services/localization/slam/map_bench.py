@@ -69,11 +69,21 @@ class BenchResult:
 
 
 def find_logs(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name.endswith(LOG_SUFFIXES))
+    """The logs under ``folder``: CARMEN and ROS 1 files by suffix, and ROS 2 bags as their folders (the folder of
+    each ``metadata.yaml``; the storage files inside are not logs of their own)."""
+    ros2_bags = {p.parent for p in folder.rglob("metadata.yaml")}
+    files = {p for p in folder.rglob("*") if p.is_file() and p.name.endswith(LOG_SUFFIXES)
+             and not ros2_bags.intersection(p.parents)}
+    return sorted(files | ros2_bags)
 
 
 def relations_for(log_path: Path) -> Path | None:
+    """``NAME.relations`` next to the log ``NAME.orig.bag``, ``NAME.bag``, ``NAME.clf[.gz]`` or ROS 2 bag folder
+    ``NAME``."""
     name = log_path.name
+    if log_path.is_dir():
+        candidate = log_path.with_name(name + ".relations")
+        return candidate if candidate.is_file() else None
     for suffix in (".orig.bag", ".bag", ".clf.gz", ".clf"):
         if name.endswith(suffix):
             candidate = log_path.with_name(name[: -len(suffix)] + ".relations")
@@ -221,7 +231,7 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.only:
         logs = [p for p in logs if any(word in p.name for word in args.only)]
     if not logs:
-        print(f"zagv map bench: no .clf, .bag or .log.gz log in {folder}", file=sys.stderr)
+        print(f"zagv map bench: no .clf, .bag, .log.gz log or ROS 2 bag folder in {folder}", file=sys.stderr)
         return 2
     try:
         config = parse_overrides(args.set)
