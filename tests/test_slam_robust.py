@@ -55,6 +55,26 @@ def test_raw_carmen_laser_records_take_the_odometry_at_their_stamp():
         parse_carmen([scan.format(t=1.0), scan.format(t=2.0), scan.format(t=3.0)])
 
 
+def test_a_log_with_each_scan_in_several_record_kinds_gives_each_scan_once():
+    """A CARMEN logger may write each front-laser scan as ROBOTLASER1, FLASER and RAWLASER1: the scan is read
+    once, from ROBOTLASER1 (its own mount and range limit)."""
+    robot = ("ROBOTLASER1 0 -1.5708 3.14159 0.785398 30.0 0.01 0 5 1 2 3 4 5 0 "
+             "{x1} 0 0 {x} 0 0 0 0 0 0 0 {t} host {t}")
+    flaser = "FLASER 5 1 2 3 4 5 {x1} 0 0 {x} 0 0 {t} host {t}"
+    raw = "RAWLASER1 0 -1.5708 3.14159 0.785398 30.0 0.01 0 5 1 2 3 4 5 0 {t} host {t}"
+    lines = []
+    for k in range(4):
+        values = {"x": float(k), "x1": k + 0.2, "t": 10.0 + k}
+        lines += [f"ODOM {k} 0 0 0 0 0 {10.0 + k} host 0", robot.format(**values), flaser.format(**values),
+                  raw.format(t=10.0 + k)]
+    log = parse_carmen(lines)
+    assert [s.stamp_s for s in log.scans] == [10.0, 11.0, 12.0, 13.0]
+    assert all(s.max_range_m == 30.0 for s in log.scans)
+    np.testing.assert_allclose(log.sensor_pose, [0.2, 0.0, 0.0])
+    flaser_only = parse_carmen([line for line in lines if line.startswith("FLASER")])
+    assert len(flaser_only.scans) == 4
+
+
 def test_a_real_log_as_raw_records_reads_as_its_flaser_lines(logs_dir):
     """MIT CSAIL's FLASER lines rewritten as the raw records a CARMEN logger also writes (RAWLASER1 with the
     scan, ODOM with the odometry, half a scan interval apart): the same scans at the same odometry."""

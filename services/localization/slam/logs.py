@@ -94,8 +94,11 @@ def no_return_range_m(ranges_m: np.ndarray) -> float | None:
 
 
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
-    """Scans of the FLASER / ROBOTLASER1 lines of a CARMEN log (other lines are ignored)."""
-    scans: list[LaserScanRecord] = []
+    """Scans of a CARMEN log's front laser: its ROBOTLASER1 lines, else its FLASER lines, else its RAWLASER1 lines
+    with the ODOM lines' odometry (a logger that writes several of these writes each scan once per kind; other
+    lines, the rear laser's included, are ignored)."""
+    scans: list[LaserScanRecord] = []  # FLASER
+    robot_scans: list[LaserScanRecord] = []  # ROBOTLASER1
     front_offset_m = 0.0
     mounts: list[np.ndarray] = []
     raw_scans: list[LaserScanRecord] = []
@@ -135,11 +138,13 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 odom = np.array(rest[3:6], float)
                 stamp = float(rest[11])
                 angles = start + np.arange(n) * (fov / max(n - 1, 1))
-                scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+                robot_scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
                 mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
-    if not scans and raw_scans:  # a log of raw laser and odometry records only
+    if robot_scans:  # each with its own mount and range limit
+        scans = robot_scans
+    elif not scans and raw_scans:  # a log of raw laser and odometry records only
         scans = _with_odometry(raw_scans, odometry)
     sensor_pose = np.array([front_offset_m, 0.0, 0.0])
     if mounts:
