@@ -53,6 +53,12 @@ def test_raw_carmen_laser_records_take_the_odometry_at_their_stamp():
     np.testing.assert_allclose(log.scans[0].ranges_m, [1, 2, 3, 4, 5])
     with pytest.raises(ValueError, match="3 RAWLASER1 scans but no ODOM record"):
         parse_carmen([scan.format(t=1.0), scan.format(t=2.0), scan.format(t=3.0)])
+    # truncated stamps order nothing: each scan takes the ODOM line read before it (the first one at the start)
+    truncated = [scan.format(t=1.1e9), "ODOM 0 0 0 0 0 0 1.1e9 host 0", scan.format(t=1.1e9),
+                 "ODOM 1 0 0.4 0 0 0 1.1e9 host 0", "ODOM 2 0 0.5 0 0 0 1.1e9 host 0", scan.format(t=1.1e9)]
+    log = parse_carmen(truncated)
+    assert not log.stamps_from_log
+    np.testing.assert_allclose([s.odom_pose for s in log.scans], [[0, 0, 0], [0, 0, 0], [2, 0, 0.5]])
 
 
 def test_a_log_with_each_scan_in_several_record_kinds_gives_each_scan_once():

@@ -103,6 +103,7 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
     mounts: list[np.ndarray] = []
     raw_scans: list[LaserScanRecord] = []
     odometry: list[tuple[float, float, float, float]] = []  # (stamp, x, y, theta) of the ODOM lines
+    odometry_before: list[int] = []  # per RAWLASER1 line: the ODOM line last read before it (-1: none yet)
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if not fields:
@@ -126,6 +127,7 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 stamp = float(fields[10 + n + n_rem])
                 angles = start + np.arange(n) * (fov / max(n - 1, 1))
                 raw_scans.append(LaserScanRecord(stamp, ranges, angles, np.zeros(3), max_range_m=max_range))
+                odometry_before.append(len(odometry) - 1)
             elif fields[0] == "ODOM":
                 odometry.append((float(fields[7]), float(fields[1]), float(fields[2]), float(fields[3])))
             elif fields[0] == "ROBOTLASER1":
@@ -145,7 +147,7 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
     if robot_scans:  # each with its own mount and range limit
         scans = robot_scans
     elif not scans and raw_scans:  # a log of raw laser and odometry records only
-        scans = _with_odometry(raw_scans, odometry)
+        scans = _with_odometry(raw_scans, odometry, odometry_before)
     sensor_pose = np.array([front_offset_m, 0.0, 0.0])
     if mounts:
         mount = np.median(np.array(mounts), axis=0)
@@ -166,13 +168,20 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
     return LaserLog(scans, sensor_pose, from_log)
 
 
-def _with_odometry(raw_scans: list[LaserScanRecord], odometry: list[tuple[float, float, float, float]]
-                   ) -> list[LaserScanRecord]:
+def _with_odometry(raw_scans: list[LaserScanRecord], odometry: list[tuple[float, float, float, float]],
+                   odometry_before: list[int]) -> list[LaserScanRecord]:
     """RAWLASER1 scans with the ODOM pose interpolated at each scan's stamp; scans before the first or after the last
-    ODOM record are left out (their odometry is unknown)."""
+    ODOM record are left out (their odometry is unknown). When the stamps cannot order the records (zero or
+    truncated: scans or ODOM lines whose stamps do not increase), each scan takes the ODOM line read last before it
+    in the file (the logger writes in time order), or the first one after it at the start of the log."""
     if not odometry:
         raise ValueError(f"CARMEN log has {len(raw_scans)} RAWLASER1 scans but no ODOM record to place them")
-    table = np.array(sorted(odometry), float)
+    table = np.array(odometry, float)
+    scan_stamps = np.array([s.stamp_s for s in raw_scans])
+    if not (np.all(np.diff(scan_stamps) > 0) and np.all(np.diff(table[:, 0]) > 0)):
+        for scan, before in zip(raw_scans, odometry_before, strict=True):
+            scan.odom_pose = table[max(before, 0), 1:].copy()
+        return raw_scans
     inside = [s for s in raw_scans if table[0, 0] <= s.stamp_s <= table[-1, 0]]
     if not inside:
         raise ValueError(f"CARMEN log: none of its {len(raw_scans)} RAWLASER1 scans lies within the time of its ODOM "
