@@ -63,7 +63,7 @@ def test_raw_carmen_laser_records_take_the_odometry_at_their_stamp():
 
 def test_a_log_with_each_scan_in_several_record_kinds_gives_each_scan_once():
     """A CARMEN logger may write each front-laser scan as ROBOTLASER1, FLASER and RAWLASER1: the scan is read
-    once, from ROBOTLASER1 (its own mount and range limit)."""
+    once, from ROBOTLASER1 (its own mount and range limit); a FLASER line of another moment is a scan of its own."""
     robot = ("ROBOTLASER1 0 -1.5708 3.14159 0.785398 30.0 0.01 0 5 1 2 3 4 5 0 "
              "{x1} 0 0 {x} 0 0 0 0 0 0 0 {t} host {t}")
     flaser = "FLASER 5 1 2 3 4 5 {x1} 0 0 {x} 0 0 {t} host {t}"
@@ -79,6 +79,8 @@ def test_a_log_with_each_scan_in_several_record_kinds_gives_each_scan_once():
     np.testing.assert_allclose(log.sensor_pose, [0.2, 0.0, 0.0])
     flaser_only = parse_carmen([line for line in lines if line.startswith("FLASER")])
     assert len(flaser_only.scans) == 4
+    between_them = parse_carmen(lines[:4] + [flaser.format(x=1.5, x1=1.7, t=10.5)] + lines[4:])
+    assert [s.stamp_s for s in between_them.scans] == [10.0, 10.5, 11.0, 12.0, 13.0]
 
 
 def test_a_real_log_as_raw_records_reads_as_its_flaser_lines(logs_dir):

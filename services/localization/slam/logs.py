@@ -94,11 +94,13 @@ def no_return_range_m(ranges_m: np.ndarray) -> float | None:
 
 
 def parse_carmen(lines: Iterable[str]) -> LaserLog:
-    """Scans of a CARMEN log's front laser: its ROBOTLASER1 lines, else its FLASER lines, else its RAWLASER1 lines
-    with the ODOM lines' odometry (a logger that writes several of these writes each scan once per kind; other
-    lines, the rear laser's included, are ignored)."""
-    scans: list[LaserScanRecord] = []  # FLASER
-    robot_scans: list[LaserScanRecord] = []  # ROBOTLASER1
+    """Scans of a CARMEN log's front laser, in file order: its ROBOTLASER1 and FLASER lines (a FLASER line with the
+    stamp of a ROBOTLASER1 line is the same scan written twice, and only the ROBOTLASER1 one, with its mount and
+    range limit, is kept), else its RAWLASER1 lines with the ODOM lines' odometry (the same scans again, when the
+    others exist). Other lines, the rear laser's included, are ignored."""
+    scans: list[LaserScanRecord] = []  # FLASER and ROBOTLASER1
+    robot_stamps: list[float] = []  # of the ROBOTLASER1 lines
+    kinds: list[str] = []  # the record kind of each of ``scans``
     front_offset_m = 0.0
     mounts: list[np.ndarray] = []
     raw_scans: list[LaserScanRecord] = []
@@ -119,6 +121,7 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 stamp = float(rest[6])
                 angles = -np.pi / 2 + np.arange(n) * flaser_angle_increment_rad(n)
                 scans.append(LaserScanRecord(stamp, ranges, angles, odom))
+                kinds.append("FLASER")
             elif fields[0] == "RAWLASER1":  # the front laser's own record: no pose, odometry from ODOM lines
                 start, fov, max_range = float(fields[2]), float(fields[3]), float(fields[5])
                 n = int(fields[8])
@@ -140,13 +143,17 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
                 odom = np.array(rest[3:6], float)
                 stamp = float(rest[11])
                 angles = start + np.arange(n) * (fov / max(n - 1, 1))
-                robot_scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+                scans.append(LaserScanRecord(stamp, ranges, angles, odom, max_range_m=max_range))
+                kinds.append("ROBOTLASER1")
+                robot_stamps.append(stamp)
                 mounts.append(between(odom, laser))
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
-    if robot_scans:  # each with its own mount and range limit
-        scans = robot_scans
-    elif not scans and raw_scans:  # a log of raw laser and odometry records only
+    if robot_stamps and "FLASER" in kinds:  # FLASER lines too: drop those that repeat a ROBOTLASER1 line
+        robot_sorted = np.sort(np.array(robot_stamps))
+        scans = [s for s, kind in zip(scans, kinds, strict=True)
+                 if kind != "FLASER" or not _stamp_in(s.stamp_s, robot_sorted)]
+    if not scans and raw_scans:  # a log of raw laser and odometry records only
         scans = _with_odometry(raw_scans, odometry, odometry_before)
     sensor_pose = np.array([front_offset_m, 0.0, 0.0])
     if mounts:
@@ -166,6 +173,13 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
         for k, scan in enumerate(scans):
             scan.stamp_s = float(k)
     return LaserLog(scans, sensor_pose, from_log)
+
+
+def _stamp_in(stamp_s: float, sorted_stamps_s: np.ndarray, tolerance_s: float = 1e-3) -> bool:
+    """Whether ``sorted_stamps_s`` holds a stamp within ``tolerance_s`` of ``stamp_s``."""
+    i = int(np.searchsorted(sorted_stamps_s, stamp_s))
+    return any(abs(float(sorted_stamps_s[j]) - stamp_s) <= tolerance_s
+               for j in (i - 1, i) if 0 <= j < len(sorted_stamps_s))
 
 
 def _with_odometry(raw_scans: list[LaserScanRecord], odometry: list[tuple[float, float, float, float]],
