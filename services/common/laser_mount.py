@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -35,6 +36,12 @@ class Transform3D:
     @classmethod
     def planar(cls, x_m: float, y_m: float, theta_rad: float) -> Transform3D:
         return cls((x_m, y_m, 0.0), yaw_to_quaternion(theta_rad))
+
+    @classmethod
+    def from_ros(cls, transform: Any) -> Transform3D:
+        """From a ``geometry_msgs/Transform`` (``translation`` x, y, z; ``rotation`` x, y, z, w)."""
+        t, q = transform.translation, transform.rotation
+        return cls((float(t.x), float(t.y), float(t.z)), (float(q.x), float(q.y), float(q.z), float(q.w)))
 
 
 @dataclass(frozen=True)

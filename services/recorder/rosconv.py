@@ -34,7 +34,7 @@ from rosbags.typesys.store import Typestore
 from proto import codec
 from proto import messages as m
 from proto.registry import TOPICS
-from services.common.laser_mount import Transform3D, planar_mount, upright_scan
+from services.common.laser_mount import LaserMount, Transform3D, planar_mount, upright_scan
 from services.common.se2 import quaternion_to_yaw, yaw_to_quaternion
 
 #: the lossless carrier of zagv-only messages
@@ -245,6 +245,8 @@ class RosDecoder:
     #: child frame -> (parent, transform) of every fixed transform seen (``/tf_static``, and ``/tf`` outside the
     #: odom and map frames): the laser mount is composed along them up to ``base_link``
     transforms: dict[str, tuple[str, Transform3D]] = field(default_factory=dict)
+    #: laser frame -> its mount, composed once per frame until a transform changes (not for every scan)
+    mounts: dict[str, LaserMount] = field(default_factory=dict)
 
     def decode(self, topic: str, msgtype: str, msg: Any) -> list[tuple[str, m.Message]]:
         name = topic.lstrip("/")
@@ -253,7 +255,9 @@ class RosDecoder:
             return [(name, codec.decode_as(t, bytes(np.asarray(msg.msgpack, np.uint8)), topic))]
         if msgtype == "sensor_msgs/msg/LaserScan":
             frame = _frame(msg.header.frame_id)
-            mount = planar_mount(frame, self.transforms, "base_link")
+            mount = self.mounts.get(frame)
+            if mount is None:
+                mount = self.mounts[frame] = planar_mount(frame, self.transforms, "base_link")
             angle_min, angle_max = float(msg.angle_min), float(msg.angle_max)
             ranges, intensities = np.asarray(msg.ranges, "<f4"), np.asarray(msg.intensities, "<f4")
             if mount.upside_down:  # re-expressed as the upright scan it equals (services/common/laser_mount.py)
@@ -284,8 +288,10 @@ class RosDecoder:
                 tr, q = tf.transform.translation, tf.transform.rotation
                 pose = (float(tr.x), float(tr.y), _yaw(q))
                 if parent not in ("odom", "map") and child not in ("odom", "map"):
-                    self.transforms[child] = (parent, Transform3D((float(tr.x), float(tr.y), float(tr.z)),
-                                                                  (float(q.x), float(q.y), float(q.z), float(q.w))))
+                    fixed = (parent, Transform3D.from_ros(tf.transform))
+                    if self.transforms.get(child) != fixed:  # /tf repeats a mount at its own rate
+                        self.transforms[child] = fixed
+                        self.mounts.clear()
                 elif parent == "map" and child == "odom" and topic == "/tf":
                     out.append(("tf/map_odom", m.Transform2D(stamp=_time_s(tf.header.stamp), parent=parent,
                                                              child=child, x=pose[0], y=pose[1], theta=pose[2])))

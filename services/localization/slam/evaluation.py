@@ -77,7 +77,9 @@ def scan_poses(robot_poses: np.ndarray, sensor_pose: np.ndarray) -> np.ndarray:
     return compose(robot_poses, np.broadcast_to(np.asarray(sensor_pose, float), robot_poses.shape))
 
 
-def _lookup(stamps_s: np.ndarray, at_s: np.ndarray, tolerance_s: float) -> tuple[np.ndarray, np.ndarray]:
+def match_stamps(stamps_s: np.ndarray, at_s: np.ndarray, tolerance_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``at_s``: the index of the nearest of ``stamps_s`` (any order), and whether it lies within
+    ``tolerance_s``."""
     order = np.argsort(stamps_s)
     sorted_stamps = stamps_s[order]
     pos = np.clip(np.searchsorted(sorted_stamps, at_s), 1, len(sorted_stamps) - 1)
@@ -95,8 +97,8 @@ def relative_pose_error(stamps_s: np.ndarray, poses: np.ndarray, relations: Rela
     stamps_s = np.asarray(stamps_s, float)
     if len(stamps_s) < 2:
         raise ValueError("the trajectory needs at least two poses")
-    i, ok_i = _lookup(stamps_s, relations.stamp_from_s, tolerance_s)
-    j, ok_j = _lookup(stamps_s, relations.stamp_to_s, tolerance_s)
+    i, ok_i = match_stamps(stamps_s, relations.stamp_from_s, tolerance_s)
+    j, ok_j = match_stamps(stamps_s, relations.stamp_to_s, tolerance_s)
     ok = ok_i & ok_j
     if not ok.any():
         raise ValueError("no relation stamp matches the trajectory's stamps")

@@ -32,6 +32,8 @@ import numpy as np
 from services.common.laser_mount import Transform3D, planar_mount, upright_scan
 from services.common.se2 import between, compose, interpolate, inverse, wrap_angle
 
+from .evaluation import match_stamps
+
 CARMEN_MAX_RANGE_M = 80.0
 #: a log's largest reading is the laser's "no return" code when it recurs: at least this many times and this fraction
 #: of all readings (the SICK LMS reports nothing hit as its range limit, 8.191 / 32.767 / 81.91 m by mode)
@@ -150,9 +152,8 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
         except (ValueError, IndexError) as exc:
             raise ValueError(f"CARMEN log line {number}: malformed {fields[0]} record ({exc})") from exc
     if robot_stamps and "FLASER" in kinds:  # FLASER lines too: drop those that repeat a ROBOTLASER1 line
-        robot_sorted = np.sort(np.array(robot_stamps))
-        scans = [s for s, kind in zip(scans, kinds, strict=True)
-                 if kind != "FLASER" or not _stamp_in(s.stamp_s, robot_sorted)]
+        _, repeated = match_stamps(np.array(robot_stamps), np.array([s.stamp_s for s in scans]), 1e-3)
+        scans = [s for s, kind, again in zip(scans, kinds, repeated, strict=True) if kind != "FLASER" or not again]
     if not scans and raw_scans:  # a log of raw laser and odometry records only
         scans = _with_odometry(raw_scans, odometry, odometry_before)
     sensor_pose = np.array([front_offset_m, 0.0, 0.0])
@@ -173,13 +174,6 @@ def parse_carmen(lines: Iterable[str]) -> LaserLog:
         for k, scan in enumerate(scans):
             scan.stamp_s = float(k)
     return LaserLog(scans, sensor_pose, from_log)
-
-
-def _stamp_in(stamp_s: float, sorted_stamps_s: np.ndarray, tolerance_s: float = 1e-3) -> bool:
-    """Whether ``sorted_stamps_s`` holds a stamp within ``tolerance_s`` of ``stamp_s``."""
-    i = int(np.searchsorted(sorted_stamps_s, stamp_s))
-    return any(abs(float(sorted_stamps_s[j]) - stamp_s) <= tolerance_s
-               for j in (i - 1, i) if 0 <= j < len(sorted_stamps_s))
 
 
 def _with_odometry(raw_scans: list[LaserScanRecord], odometry: list[tuple[float, float, float, float]],
@@ -261,7 +255,7 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
                 for tf in msg.transforms:
                     t, q = tf.transform.translation, tf.transform.rotation
                     child, parent = tf.child_frame_id.lstrip("/"), tf.header.frame_id.lstrip("/")
-                    transform = Transform3D((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+                    transform = Transform3D.from_ros(tf.transform)
                     if conn.topic == "/tf_static":
                         static[child] = (parent, transform)
                     elif parent == "odom":
