@@ -224,7 +224,6 @@ def read_bag(path: Path, scan_topic: str | None = None, odom_topic: str | None =
     from rosbags.typesys import Stores, get_typestore
 
     # a ROS 2 bag that does not carry its message definitions (sqlite3 before Iron) is read with Humble's
-    # a ROS 2 bag that does not carry its message definitions (sqlite3 before Iron) is read with Humble's
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
         scan_conns = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/LaserScan"
                       and (scan_topic is None or c.topic == scan_topic)]
