@@ -88,8 +88,10 @@ class RazorReader:
         while not self._stop.is_set():
             try:
                 with serial.Serial(self.port, self.baud, timeout=0.2) as ser:
-                    ser.write(b"#o0#ox#o1")
+                    # stale input goes before the commands, not after: a flush after them could drop the first
+                    # lines the firmware sends in answer
                     ser.reset_input_buffer()
+                    ser.write(b"#o0#ox#o1")
                     self.error = ""
                     self._read_lines(ser)
             except (OSError, serial.SerialException) as exc:
