@@ -19,7 +19,7 @@ from services.common.node import Node, SharedReader
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.launch.container import split_groups
-from services.launch.up import DEFAULT_COMPOSITION, StackPlan, parse_compose
+from services.launch.up import DEFAULT_COMPOSITION, StackPlan, compose_from_args, parse_compose
 from tests.support.waiting import wait_for
 
 
@@ -51,6 +51,22 @@ def test_zagv_up_runs_each_group_as_one_child_and_keeps_the_drive_apart():
         parse_compose(["sim,nav"])
     with pytest.raises(ValueError, match="nav is in two groups"):
         parse_compose(["nav,lidar", "nav"])
+
+
+def test_zagv_up_composes_by_default_and_runs_each_service_alone_with_no_compose():
+    from services.cli.main import build_parser
+
+    def plan(*argv: str) -> StackPlan:
+        args = build_parser().parse_args(["up", "--sim", "--run-dir", "/tmp/zagv-test-unused", *argv])
+        return StackPlan(sim=True, compose=compose_from_args(args), run_dir="/x")
+
+    assert [c.name for c in plan().children()] == ["canbus", "sim", "drive", "components"]
+    assert [c.name for c in plan("--no-compose").children()] == [
+        "canbus", "sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
+    assert [c.name for c in plan("--compose", "nav,localization").children()] == [
+        "canbus", "sim", "drive", "lidar", "safety", "components", "recorder", "hmi_api"]
+    with pytest.raises(ValueError, match="--compose and --no-compose together"):
+        plan("--compose", "--no-compose")
 
 
 @pytest.fixture

@@ -76,7 +76,10 @@ def fake_zenohd(tmp_path: Path) -> Path:
 
 
 def options(venv: Path, **changes) -> UnitOptions:
-    base: dict = dict(venv=venv, user="zagv", config="/etc/zagv/robot.toml", can_interface="can1", drive_cpu=3)
+    # one unit per service (--no-compose), so that each service's own unit is checked; the composed default has its
+    # own tests below
+    base: dict = dict(venv=venv, user="zagv", config="/etc/zagv/robot.toml", can_interface="can1", drive_cpu=3,
+                      compose=False)
     base.update(changes)
     return UnitOptions(**base)
 
@@ -210,10 +213,17 @@ def test_cli_writes_every_unit_and_names_them(venv: Path, tmp_path: Path, capsys
                  "--can-interface", "can0", "--config", "/etc/zagv/robot.toml"])
     out = capsys.readouterr().out
     assert code == 0
+    # composed by default, as zagv up
     assert sorted(p.name for p in dest.iterdir()) == sorted(install_units.unit_names())
+    assert "zagv-components.service" in install_units.unit_names() and "zagv-nav.service" not in out
     for name in install_units.unit_names():
         assert f"wrote {dest / name}" in out
     assert "-m services.cli router" in (dest / "zagv-router.service").read_text()
+    isolated = tmp_path / "isolated"
+    assert main(["install-units", "--venv", str(venv), "--user", "zagv", "--dest", str(isolated), "--no-compose"]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in isolated.iterdir()) == sorted(install_units.unit_names(compose=False))
+    assert "zagv-nav.service" in install_units.unit_names(compose=False)
     assert main(["install-units", "--venv", str(venv), "--user", "root", "--dest", str(dest)]) == 2
     assert "--user" in capsys.readouterr().err
 

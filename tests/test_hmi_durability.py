@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import threading
 
@@ -76,7 +77,8 @@ def test_kill9_loses_no_acknowledged_pose(tmp_path):
         for t in threads:
             t.join(timeout=20)
         stop.set()
-        stack.wait_line(r"started hmi_api \(pid", timeout_s=30, after=lines_before)
+        # the process hmi_api runs in: its own, or the container it is composed in (zagv up's default)
+        stack.wait_line(rf"started {re.escape(stack.process_of('hmi_api'))} \(pid", timeout_s=30, after=lines_before)
         wait_http(stack)
         with HmiClient(base_url(stack)) as c:
             c.login(password)  # the first-run password survives the restart

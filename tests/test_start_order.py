@@ -64,7 +64,8 @@ def start_shuffled(tmp_path: Path, seed: int, delay_max_s: float = 5.0) -> tuple
     run_dir = tmp_path / f"start{seed}"
     run_dir.mkdir()
     stack = Stack(run_dir, None, speed=2.0,
-                  extra_args=["--start-seed", str(seed), "--start-delay-max", str(delay_max_s)])
+                  # one process per service, so that each service's start is shuffled and delayed on its own
+                  extra_args=["--no-compose", "--start-seed", str(seed), "--start-delay-max", str(delay_max_s)])
     stack.start(wait_ready=False)
     stack.wait_line(r"^zagv: every service started", timeout_s=60)
     return stack, time.monotonic()

@@ -25,9 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
     p.add_argument("--drive-rt-priority", type=int, default=install_units.DEFAULT_DRIVE_RT_PRIORITY,
                    help="SCHED_FIFO priority of the drive (default %(default)s)")
-    p.add_argument("--compose", action="store_true",
+    p.add_argument("--compose", action=argparse.BooleanOptionalAction, default=True,
                    help=f"run {', '.join(install_units.COMPOSED)} in one process, zagv-components.service "
-                        "(composition: less memory and CPU; a crash restarts them together)")
+                        "(composition: less memory and CPU; a crash restarts them together). The default; "
+                        "--no-compose gives each its own unit")
     p.add_argument("--templates", help="folder of the *.in templates (default: deploy/systemd of this checkout)")
     p.set_defaults(func=run)
 

@@ -35,8 +35,9 @@ def _add_run(ssub: argparse._SubParsersAction) -> None:
     rp.add_argument("--start-seed", type=int, help="start the stack's services in a random order (zagv up)")
     rp.add_argument("--start-delay-max", type=float, default=0.0, metavar="S",
                     help="with --start-seed: random 0..S s delay before each service (zagv up)")
-    rp.add_argument("--compose", action="store_true",
-                    help="run every service but the drive in one process (zagv up --compose)")
+    rp.add_argument("--no-compose", action="store_true",
+                    help="every service in a process of its own (zagv up --no-compose; the default composes every "
+                         "service but the drive in one process)")
     rp.add_argument("--mqtt-broker", metavar="HOST:PORT",
                     help="[vda5050] scenarios: the MQTT broker of the robots and the master (default: embedded)")
     rp.set_defaults(func=run)

@@ -42,8 +42,10 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--only", help="comma-separated subset of services to start")
     p.add_argument("--compose", action="append", nargs="?", const="default", metavar="SERVICE,SERVICE,...",
                    help="run these services in one process (composition, services/launch/container.py); "
-                        "repeatable, one process per group. Without a list: every service but the drive (and the "
-                        "simulator) in one process")
+                        "repeatable, one process per group. Without a list, and the default: every service but the "
+                        "drive (and the simulator) in one process")
+    p.add_argument("--no-compose", action="store_true",
+                   help="every service in a process of its own (isolation: a crash restarts only that service)")
     p.add_argument("--foxglove-port", type=int, default=0,
                    help="serve Foxglove (WebSocket, 127.0.0.1) on this port (default: no Foxglove bridge)")
     p.add_argument("--start-seed", type=int, help="start the services in a random order drawn with this seed "

@@ -17,7 +17,8 @@ from pathlib import Path
 
 #: the services that get a unit, in start order after the router
 SERVICES = ["drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api", "vda5050"]
-#: ``--compose``: these run in one unit, ``zagv-components.service`` (the others need the LAN or a real-time CPU)
+#: composed (the default; ``--no-compose`` gives each a unit): these run in one unit, ``zagv-components.service``
+#: (the others need the LAN or a real-time CPU)
 COMPOSED = ["safety", "localization", "nav", "recorder"]
 DEFAULT_DEST = "/etc/systemd/system"
 DEFAULT_CONFIG = "/etc/zagv/robot.toml"
@@ -52,7 +53,7 @@ class UnitOptions:
     #: the site server's units instead of a robot's
     site: bool = False
     #: ``COMPOSED`` in one unit (zagv-components.service) instead of one unit each
-    compose: bool = False
+    compose: bool = True
 
     @property
     def python(self) -> Path:
@@ -64,7 +65,7 @@ def default_templates_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "deploy" / "systemd"
 
 
-def unit_names(site: bool = False, compose: bool = False) -> list[str]:
+def unit_names(site: bool = False, compose: bool = True) -> list[str]:
     """Every unit rendered: the router, one per service (with ``compose``: ``COMPOSED`` as one
     zagv-components.service), and the target (a site: its router, the fleet view and zagv-site.target)."""
     if site:

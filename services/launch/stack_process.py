@@ -151,17 +151,22 @@ class Stack:
         with self._lock:
             return len(self.lines)
 
-    def pid(self, service: str) -> int:
-        """The pid of the newest instance of ``service`` (from the supervisor's start lines), or of the container
-        it runs in (``zagv up --compose``: the container's ``running a, b, ... in one process`` line)."""
+    def process_of(self, service: str) -> str:
+        """The supervisor's name of the process ``service`` runs in: its own, or its container's (the container's
+        ``running a, b, ... in one process`` line) when it was never started on its own."""
         with self._lock:
-            pids = [int(m.group(1)) for line in self.lines
-                    if (m := re.search(rf"^zagv\s+\| started {re.escape(service)} \(pid (\d+)\)", line))]
+            own = any(re.search(rf"^zagv\s+\| started {re.escape(service)} \(pid \d+\)", line) for line in self.lines)
             containers = [m.group(1) for line in self.lines
                           if (m := re.search(r"^(\S+)\s+\| .*\[zagv\.container\]: running (.+) in one process", line))
                           and service in m.group(2).split(", ")]
-        if not pids and containers:
-            return self.pid(containers[-1])
+        return containers[-1] if containers and not own else service
+
+    def pid(self, service: str) -> int:
+        """The pid of the newest instance of the process ``service`` runs in (from the supervisor's start lines)."""
+        name = self.process_of(service)
+        with self._lock:
+            pids = [int(m.group(1)) for line in self.lines
+                    if (m := re.search(rf"^zagv\s+\| started {re.escape(name)} \(pid (\d+)\)", line))]
         if not pids:
             raise AssertionError(f"{service} was never started:\n" + self.output()[-3000:])
         return pids[-1]

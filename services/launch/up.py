@@ -431,8 +431,19 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
         mqtt_embedded=not getattr(args, "no_embedded_broker", False),
         robot_count=getattr(args, "robots", 1), robot_slots=[parse_robot_arg(r) for r in getattr(args, "robot", [])],
-        compose=parse_compose(getattr(args, "compose", None)),
+        compose=compose_from_args(args),
     )
+
+
+def compose_from_args(args: argparse.Namespace) -> list[list[str]]:
+    """The composition groups of ``--compose``/``--no-compose``: DEFAULT_COMPOSITION when neither is given (as Nav2's
+    bringup composes its servers by default); ValueError when both are."""
+    groups: list[str] | None = getattr(args, "compose", None)
+    if getattr(args, "no_compose", False):
+        if groups:
+            raise ValueError("--compose and --no-compose together")
+        return []
+    return parse_compose(groups or ["default"])
 
 
 def run(args: argparse.Namespace) -> int:

@@ -54,8 +54,8 @@ def run_file(args: argparse.Namespace) -> int:
     extra += [a for s in args.set for a in ("--set", s)]
     if args.start_seed is not None:
         extra += ["--start-seed", str(args.start_seed), "--start-delay-max", str(args.start_delay_max)]
-    if getattr(args, "compose", False):
-        extra += ["--compose"]
+    if getattr(args, "no_compose", False):
+        extra += ["--no-compose"]
     stack = Stack(run_dir, None, world=sc.world or "corridor", map_yaml=sc.map_yaml, speed=sc.speed,
                   extra_args=extra)
     print(f"zagv scenario: starting the simulated stack (log {run_dir / 'stack.log'})", flush=True)
