@@ -8,12 +8,14 @@ cmd_vel timeout; killing drive stops it through the motor controllers' watchdog.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -129,9 +131,9 @@ class Navigator:
                       and self.speed() > 0.1, timeout_s=60, message=f"goal {goal_id} never got going: {self.status}")
 
 
-@pytest.fixture(scope="module")
-def nav(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Navigator]:
-    stack = Stack(tmp_path_factory.mktemp("nav_faults"), SERVICES, world="corridor", speed=SPEED)
+@contextlib.contextmanager
+def navigator(run_dir: Path, extra_args: list[str]) -> Iterator[Navigator]:
+    stack = Stack(run_dir, SERVICES, world="corridor", speed=SPEED, extra_args=extra_args)
     try:
         stack.start()
         n = Navigator(stack)
@@ -140,6 +142,13 @@ def nav(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Navigator]:
         yield n
     finally:
         stack.stop()
+
+
+@pytest.fixture(scope="module")
+def nav(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Navigator]:
+    """Each service in a process of its own (``--no-compose``), so that each can be killed alone."""
+    with navigator(tmp_path_factory.mktemp("nav_faults"), ["--no-compose"]) as n:
+        yield n
 
 
 #: per killed service: the data it produces (None: none to wait for) and the sim s within which the robot must be
@@ -244,3 +253,30 @@ def test_hung_sensor_during_goal_stops_the_robot(nav: Navigator, service: str) -
         if n.status.state not in ("succeeded", "failed", "canceled", "idle"):
             n.query("nav/cancel", CancelRequest(goal_id=goal_id), Reply)
         wait_for_sync(lambda: n.speed() < STILL_MPS, timeout_s=30)
+
+
+def test_sigkill_of_the_composed_process_during_goal_stops_the_robot(tmp_path: Path, fault_figures) -> None:
+    """zagv up's default: lidar, localization and nav share ``components``. Killing it kills all three at once: the
+    drive's cmd_vel timeout stops the robot, the supervisor restarts the process, every service in it is healthy
+    again, and the new nav is idle, commanding nothing."""
+    with navigator(tmp_path, []) as n:
+        stack = n.stack
+        assert {stack.process_of(s) for s in ("lidar", "localization", "nav")} == {"components"}
+        n.goal(EAST, "kill-components")
+        mark = stack.line_count()
+        with n.lock:
+            first_truth = len(n.truth_log)
+            killed_sim = n.truth.stamp
+        killed = time.monotonic()
+        os.kill(stack.pid("components"), signal.SIGKILL)
+        bound_s = BOUNDS["nav"][1]
+        n.wait_sim(killed_sim + bound_s + 0.5)
+        with n.lock:
+            stops = [g.stamp for g in n.truth_log[first_truth:] if math.hypot(g.twist.vx, g.twist.vy) < STILL_MPS]
+        assert stops and stops[0] - killed_sim <= bound_s, "the robot drove on after its composed services died"
+        fault_figures("components_killed_to_standstill_sim", stops[0] - killed_sim)
+        for service in ("lidar", "localization", "nav"):
+            stack.wait_line(rf"^zagv: {service} healthy again", timeout_s=60, after=mark)
+        fault_figures("components_killed_during_goal_to_healthy_wall", time.monotonic() - killed)
+        wait_for_sync(lambda: n.status.state == "idle" and n.speed() < STILL_MPS, timeout_s=60,
+                      message=f"after components came back: {n.status}")

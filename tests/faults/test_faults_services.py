@@ -105,7 +105,10 @@ class Observer:
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Stack, Observer, CuttableProxy]]:
-    stack = Stack(tmp_path_factory.mktemp("service_faults"), SERVICES, world="corridor", speed=1.0)
+    # each service in a process of its own, so that each can be killed alone (tests/faults/test_faults_nav.py kills
+    # the composed process of zagv up's default)
+    stack = Stack(tmp_path_factory.mktemp("service_faults"), SERVICES, world="corridor", speed=1.0,
+                  extra_args=["--no-compose"])
     proxy = CuttableProxy(stack.lidar_port)
     stack.argv += ["--set", f"lidar.port={proxy.port}"]  # after the launcher's own lidar.port: this one wins
     observer = None
