@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -129,6 +130,30 @@ def test_odometry_corruption_is_seeded_and_as_documented():
     c, _ = corrupt_poses(truth, OdometryNoise.degraded(seed=8))
     assert np.abs(a - c).max() > 0.1
     assert "2°/m" in degraded.describe() and "±5 %" in degraded.describe()
+
+
+def test_turning_odometry_adds_rotation_errors_and_leaves_the_other_terms_as_they_were():
+    # 20 m straight, then ten turns on the spot (2π each, 0.1 rad steps), then 20 m on
+    straight = np.stack([np.arange(201) * 0.1, np.zeros(201), np.zeros(201)], axis=1)
+    spin = np.stack([np.full(629, 20.0), np.zeros(629), np.arange(1, 630) * 0.1], axis=1)
+    on = np.stack([20.0 + np.cos(62.9) * np.arange(1, 201) * 0.1, np.sin(62.9) * np.arange(1, 201) * 0.1,
+                   np.full(200, 62.9)], axis=1)
+    truth = np.concatenate([straight, spin, on])
+    degraded, turning = OdometryNoise.degraded(seed=5), OdometryNoise.turning(seed=5)
+    a, jumps_a = corrupt_poses(truth, degraded)
+    b, jumps_b = corrupt_poses(truth, turning)
+    without_turns, _ = corrupt_poses(truth, msgspec.structs.replace(turning, rot_scale_error=0.0,
+                                                                    noise_theta_per_rad=0.0))
+    np.testing.assert_array_equal(a, without_turns)  # the same draws for every other term
+    assert jumps_a == jumps_b
+    # degraded odometry gets the spin right (it grows with distance only); turning odometry is off by about 8 %
+    # of the 62.9 rad turned, with the noise's sqrt(629)·0.1·0.05 = 0.13 rad on top
+    def spin_error(poses: np.ndarray) -> float:  # the turn summed over the spin's increments, less the true 62.9 rad
+        return float(between(poses[200:829], poses[201:830])[:, 2].sum() - 62.9)
+
+    assert abs(spin_error(a)) < 1e-9
+    assert abs(abs(spin_error(b)) - 0.08 * 62.9) < 0.5
+    assert "turns scaled ±8 %" in turning.describe() and "turns" not in degraded.describe()
 
 
 def test_aligned_trajectory_error_ignores_a_rigid_motion():

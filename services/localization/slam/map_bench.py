@@ -22,9 +22,12 @@ Logs are the ``.clf``, ``.bag`` and ``.log.gz`` files under FOLDER (recursively)
   A map uniformly smaller than its reference (``ref_scale`` > 1) with edges short by the same fraction is a matter
   of metric, not of bending.
 ``--odometry degraded`` corrupts the odometry with ``OdometryNoise.degraded(seed)`` (wheel scale ±5 %, heading drift
-2°/m, jumps; see ``services/localization/slam/odometry_noise.py``); ``both`` runs clean then degraded and adds the
-ratio of the errors. ``--max-scans`` caps every log (a quick slice), ``--only`` keeps logs whose name contains one of
-the given words, ``--json`` writes the rows, ``--set KEY=VALUE`` (repeatable) overrides a ``SlamConfig`` field.
+2°/m, jumps; see ``services/localization/slam/odometry_noise.py``), ``--odometry turning`` with
+``OdometryNoise.turning(seed)`` (the same, and turns scaled ±8 % with white noise growing with each turn, which the
+degraded setting leaves out: a robot turning on the spot keeps its heading there); ``both`` runs clean then degraded,
+``all`` clean, degraded and turning. ``--max-scans`` caps every log (a quick slice), ``--only`` keeps logs whose
+name contains one of the given words, ``--json`` writes the rows, ``--set KEY=VALUE`` (repeatable) overrides a
+``SlamConfig`` field.
 """
 
 from __future__ import annotations
@@ -147,6 +150,8 @@ def bench_log(log_path: Path, odometry: str, *, seed: int = 1, max_scans: int | 
     noise = None
     if odometry == "degraded":
         noise = OdometryNoise.degraded(seed)
+    elif odometry == "turning":
+        noise = OdometryNoise.turning(seed)
     elif truth_scans is not None and odometry != "exact":
         noise = OdometryNoise.for_reference(seed)
     if noise is not None:
@@ -238,12 +243,13 @@ def run_bench(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"zagv map bench: {exc}", file=sys.stderr)
         return 2
-    settings = ["clean", "degraded"] if args.odometry == "both" else [args.odometry]
+    settings = {"both": ["clean", "degraded"], "all": ["clean", "degraded", "turning"]}.get(args.odometry,
+                                                                                          [args.odometry])
     rows: list[BenchResult] = []
     for path in logs:
         clean_laser = None
         for setting in settings:
-            reference: np.ndarray | None = clean_laser if setting == "degraded" else None
+            reference: np.ndarray | None = clean_laser if setting in ("degraded", "turning") else None
             try:
                 row, laser = bench_log(path, setting, seed=args.seed, max_scans=args.max_scans, reference=reference,
                                         config=config)
@@ -263,9 +269,10 @@ def run_bench(args: argparse.Namespace) -> int:
 def add_bench_parser(map_subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = map_subparsers.add_parser("bench", help="build + evaluate a map from every log in a folder (table)")
     p.add_argument("folder", help="folder searched recursively for .clf, .bag and .log.gz logs")
-    p.add_argument("--odometry", choices=["clean", "degraded", "both", "exact"], default="clean",
-                   help="odometry as logged (reference logs: lightly corrupted), degraded, or for reference logs "
-                        "exact (the reference itself; default: clean)")
+    p.add_argument("--odometry", choices=["clean", "degraded", "turning", "both", "all", "exact"], default="clean",
+                   help="odometry as logged (reference logs: lightly corrupted), degraded, turning (degraded with "
+                        "rotation errors too), both (clean, degraded), all (clean, degraded, turning), or for "
+                        "reference logs exact (the reference itself; default: clean)")
     p.add_argument("--seed", type=int, default=1, help="seed of the odometry corruption (default 1)")
     p.add_argument("--only", nargs="+", metavar="WORD", help="only logs whose file name contains one of these")
     p.add_argument("--max-scans", type=int, help="process only the first N scans of each log")
