@@ -12,10 +12,10 @@ import threading
 import pytest
 
 from proto import Keys, encode
-from proto.messages import Twist2D
+from proto.messages import Odometry, Twist2D
 from services.client.status import collect
 from services.common.config import ConfigError
-from services.common.node import Node, SharedReader
+from services.common.node import SUBSCRIBER_QUEUE, Node, SharedReader
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.launch.container import split_groups
@@ -95,6 +95,42 @@ async def test_nodes_of_one_process_share_a_reader_per_key(session, router):
         await wait_for(lambda: (pub.put(encode(Twist2D(vx=0.7))), len(got_b) > n)[1], timeout_s=5)
         b.close()  # the last one out undeclares it
         assert shared[0].registry_key not in SharedReader._registry
+    finally:
+        publisher.close()
+
+
+async def test_a_newest_only_listener_and_a_deeper_one_share_the_deeper_ring(session, router):
+    """hmi_api asks for depth 1 (newest only) where safety and nav ask for the default ring: one reader serves all,
+    re-declared deeper when the deeper listener comes second; a keep-every-message FIFO stays a reader of its own."""
+    keys = Keys("c3")
+    newest, ring, fifo = Node("newest", session, keys), Node("ring", session, keys), Node("fifo", session, keys)
+    got: dict[str, list[float]] = {"newest": [], "ring": [], "fifo": [], "raw": []}
+    newest.subscribe("odom", lambda m: got["newest"].append(m.stamp), queue=1, on_zenoh_thread=True)
+
+    def readers() -> list[SharedReader]:
+        return [r for k, r in SharedReader._registry.items() if k[1] == keys("odom") and r.session is session]
+
+    assert [r.queue for r in readers()] == [1]
+    ring.subscribe("odom", lambda m: got["ring"].append(m.stamp))
+    ring.subscribe_raw("odom", lambda s: got["raw"].append(1.0))
+    assert [(r.queue, len(r.listeners)) for r in readers()] == [(SUBSCRIBER_QUEUE, 3)]  # re-declared deeper
+    fifo.subscribe("odom", lambda m: got["fifo"].append(m.stamp), queue=None)
+    assert sorted((r.queue or 0, len(r.listeners)) for r in readers()) == [(0, 1), (SUBSCRIBER_QUEUE, 3)]
+    publisher = open_session(ZenohSettings(connect=[router]))
+    try:
+        pub = publisher.declare_publisher(keys("odom"))
+        stamp = iter(range(1, 10_000))
+
+        def every_listener_got_one() -> bool:
+            pub.put(encode(Odometry(stamp=float(next(stamp)))))
+            return all(got.values())
+
+        await wait_for(every_listener_got_one, timeout_s=5)
+        newest.close()  # joined the shallow reader, leaves the deep one that replaced it
+        assert sorted(len(r.listeners) for r in readers()) == [1, 2]
+        ring.close()
+        fifo.close()
+        assert readers() == []
     finally:
         publisher.close()
 

@@ -72,18 +72,22 @@ def declare_reader(session: zenoh.Session, key: str, on_sample: Callable[[zenoh.
 
 
 class SharedReader:
-    """One native subscriber and reader thread for every node of a process that subscribes to the same key with
-    the same queue: the services of a container (services/launch/container.py) then pay one reader-thread wake-up
-    per message instead of one each (the clock's 100 Hz reaches five services there). A process with one node has
+    """One native subscriber and reader thread for every node of a process that subscribes to the same key: the
+    services of a container (services/launch/container.py) then pay one reader-thread wake-up per message instead
+    of one each (the clock's 100 Hz reaches five services there). Listeners that asked for rings of different
+    depths share the deepest (a "newest only" listener of depth 1 is served by a deeper ring: it still ends on the
+    newest message); a keep-every-message FIFO (``queue`` None) is a reader of its own. A process with one node has
     one listener per reader, as before."""
 
-    _registry: dict[tuple[int, str, int | None], SharedReader] = {}
+    _registry: dict[tuple[int, str, bool], SharedReader] = {}
     _lock = threading.Lock()
 
-    def __init__(self, session: zenoh.Session, key: str, queue: int | None) -> None:
-        self.registry_key = (id(session), key, queue)
+    def __init__(self, session: zenoh.Session, key: str, queue: int | None,
+                 listeners: tuple[Callable[[zenoh.Sample], None], ...] = ()) -> None:
+        self.registry_key = (id(session), key, queue is None)
         self.session = session  # held: while the reader lives, no other session can take this id()
-        self.listeners: tuple[Callable[[zenoh.Sample], None], ...] = ()
+        self.queue = queue
+        self.listeners = listeners
         self.subscriber = declare_reader(session, key, self._on_sample, queue)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -96,32 +100,50 @@ class SharedReader:
     @classmethod
     def listen(cls, session: zenoh.Session, key: str, on_sample: Callable[[zenoh.Sample], None],
                queue: int | None = SUBSCRIBER_QUEUE) -> ReaderLease:
-        """Add ``on_sample`` to the process's reader of ``key`` (declared on first use); undeclare the lease to
-        leave it (the last one out undeclares the subscriber)."""
+        """Add ``on_sample`` to the process's reader of ``key`` (declared on first use, or again deeper when this
+        listener asks for a deeper ring than it has); undeclare the lease to leave it (the last one out undeclares
+        the subscriber)."""
+        registry_key = (id(session), key, queue is None)
+        replaced = None
         with cls._lock:
-            reader = cls._registry.get((id(session), key, queue))
-            if reader is None or reader.session.is_closed():  # a reader left behind by a session closed under it
-                reader = cls._registry[(id(session), key, queue)] = cls(session, key, queue)
+            reader = cls._registry.get(registry_key)
+            if reader is not None and reader.session.is_closed():  # left behind by a session closed under it
+                reader = None
+            if reader is not None and queue is not None and reader.queue is not None and queue > reader.queue:
+                # a deeper ring takes over every listener; the shallow one is undeclared once it has none
+                replaced, reader = reader, cls(session, key, queue, reader.listeners)
+                replaced.listeners = ()
+                cls._registry[registry_key] = reader
+            elif reader is None:
+                reader = cls._registry[registry_key] = cls(session, key, queue)
             reader.listeners = (*reader.listeners, on_sample)  # replaced whole: the reader thread iterates a tuple
-        return ReaderLease(reader, on_sample)
+        if replaced is not None:
+            replaced.subscriber.undeclare()
+        return ReaderLease(registry_key, on_sample)
 
-    def leave(self, on_sample: Callable[[zenoh.Sample], None]) -> None:
-        with self._lock:
-            self.listeners = tuple(f for f in self.listeners if f is not on_sample)
-            if self.listeners or self._registry.get(self.registry_key) is not self:
+    @classmethod
+    def leave(cls, registry_key: tuple[int, str, bool], on_sample: Callable[[zenoh.Sample], None]) -> None:
+        """Remove ``on_sample`` from the reader that now serves ``registry_key`` (it may have been re-declared
+        deeper since the listener joined); the last one out undeclares it."""
+        with cls._lock:
+            reader = cls._registry.get(registry_key)
+            if reader is None:
                 return
-            del self._registry[self.registry_key]
-        self.subscriber.undeclare()
+            reader.listeners = tuple(f for f in reader.listeners if f is not on_sample)
+            if reader.listeners:
+                return
+            del cls._registry[registry_key]
+        reader.subscriber.undeclare()
 
 
 class ReaderLease:
-    """A node's place among a SharedReader's listeners."""
+    """A node's place among the listeners of a key's SharedReader."""
 
-    def __init__(self, reader: SharedReader, on_sample: Callable[[zenoh.Sample], None]) -> None:
-        self.reader, self.on_sample = reader, on_sample
+    def __init__(self, registry_key: tuple[int, str, bool], on_sample: Callable[[zenoh.Sample], None]) -> None:
+        self.registry_key, self.on_sample = registry_key, on_sample
 
     def undeclare(self) -> None:
-        self.reader.leave(self.on_sample)
+        SharedReader.leave(self.registry_key, self.on_sample)
 
 
 class TopicPublisher:
@@ -368,6 +390,17 @@ class Node:
         self._declared.append(SharedReader.listen(self.session, key, on_sample, queue))
         if latched:
             self._declared.append(LatchedFetch(self.session, key, on_sample))
+
+    def subscribe_raw(self, name: str, on_sample: Callable[[zenoh.Sample], None]) -> None:
+        """Call ``on_sample(sample)`` with each undecoded sample on ``name``, on the key's reader thread (the one the
+        process's other subscribers of ``name`` share): for consumers of raw payloads such as the black box."""
+        key = self.keys(name)
+
+        def counted(sample: zenoh.Sample) -> None:
+            self.received[key] += 1
+            on_sample(sample)
+
+        self._declared.append(SharedReader.listen(self.session, key, counted))
 
     def _post(self, deliver: Callable[[Any], None], msg: Any) -> None:
         """Queue ``deliver(msg)`` for the loop (any reader thread). The loop is woken only when no drain is pending:

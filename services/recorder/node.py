@@ -1,9 +1,11 @@
 """The recorder service: the black box.
 
-Keeps every topic's raw payloads of the last ``window_s`` (clock time) in memory and writes them as a rosbag2/MCAP
-bag (``blackbox_<time>_<reason>/`` in the black box folder) when the drive e-stops or reports a fault
-(``wheels``), when a goal fails (``nav/status``), when another service's health token disappears (a crash), and on
-demand through the ``recorder/save`` query (HMI, ``zagv blackbox save``). A save waits ``post_trigger_s`` of clock
+Keeps every topic's raw payloads (``proto.registry.TOPICS`` but ``exclude``) of the last ``window_s`` (clock time)
+in memory and writes them as a rosbag2/MCAP bag (``blackbox_<time>_<reason>/`` in the black box folder) when the
+drive e-stops or reports a fault (``wheels``), when a goal fails (``nav/status``), when another service's health
+token disappears (a crash), and on demand through the ``recorder/save`` query (HMI, ``zagv blackbox save``). Each
+topic arrives through the key's shared reader ring (``Node.subscribe_raw``): a process too busy to keep up loses its
+oldest samples rather than stall a publisher. A save waits ``post_trigger_s`` of clock
 time so that the bag shows the aftermath too, then writes on a worker thread.
 """
 
@@ -104,12 +106,17 @@ class BlackBox:
         return Reply(ok=path is not None, message=str(path) if path else "nothing saved")
 
     def wire(self) -> list[Any]:
-        """Subscribe to every topic (and to the health tokens for crashes) and answer recorder/save; the
-        Zenoh subscribers to undeclare at the end."""
+        """Subscribe to every recorded topic (and to the health tokens for crashes) and answer recorder/save; the
+        Zenoh subscribers to undeclare at the end (the node undeclares its own)."""
         node, cfg = self.node, self.cfg
         subs: list[Any] = []
         if cfg.blackbox:
-            subs.append(node.session.declare_subscriber(node.keys.everything, self.on_sample))
+            # each recorded topic through the process's shared reader of its key: in a container, where the other
+            # services read most of these keys already, a message costs the black box no thread wake-up of its own
+            # (a subscriber on agv/<id>/** did: one per message of every topic)
+            for name in sorted(TOPICS):
+                if name not in self.excluded:
+                    node.subscribe_raw(name, self.on_sample)
             node.session.get(node.keys("map"), lambda r: self.on_sample(r.ok) if r.ok is not None else None,
                              timeout=2.0)
             # edge detection on the reader threads (each touches its own fields of Triggers); the loop is woken
