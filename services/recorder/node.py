@@ -12,6 +12,7 @@ time so that the bag shows the aftermath too, then writes on a worker thread.
 from __future__ import annotations
 
 import asyncio
+import functools
 import shutil
 import time
 from pathlib import Path
@@ -19,7 +20,6 @@ from typing import Any
 
 import zenoh
 
-from proto.keys import split_key
 from proto.messages import BlackBoxSaveRequest, NavStatus, Reply, WheelStates
 from proto.registry import TOPICS
 from services.common.service import ServiceContext
@@ -42,13 +42,9 @@ class BlackBox:
         self.saving: set[str] = set()
         self.excluded = set(self.cfg.exclude)
 
-    def on_sample(self, sample: zenoh.Sample) -> None:
-        try:
-            _, name = split_key(str(sample.key_expr))
-        except ValueError:
-            return
-        if name in TOPICS and name not in self.excluded:
-            self.ring.add(name, sample.payload.to_bytes(), int(round(self.clock.now() * 1e9)))
+    def record(self, name: str, sample: zenoh.Sample) -> None:
+        """Keep ``sample`` of topic ``name`` (reader thread), stamped with the clock's time of arrival."""
+        self.ring.add(name, sample.payload.to_bytes(), int(round(self.clock.now() * 1e9)))
 
     def may_save(self, reason: str, now: float, on_demand: bool) -> bool:
         """A trigger saves at most once per ``cooldown_s`` and not while the same reason is being saved;
@@ -114,11 +110,12 @@ class BlackBox:
             # each recorded topic through the process's shared reader of its key: in a container, where the other
             # services read most of these keys already, a message costs the black box no thread wake-up of its own
             # (a subscriber on agv/<id>/** did: one per message of every topic)
-            for name in sorted(TOPICS):
-                if name not in self.excluded:
-                    node.subscribe_raw(name, self.on_sample)
-            node.session.get(node.keys("map"), lambda r: self.on_sample(r.ok) if r.ok is not None else None,
-                             timeout=2.0)
+            recorded = sorted(set(TOPICS) - self.excluded)
+            for name in recorded:
+                node.subscribe_raw(name, functools.partial(self.record, name))
+            if "map" in recorded:  # latched and published rarely: the map already out goes into the box too
+                node.session.get(node.keys("map"), lambda r: self.record("map", r.ok) if r.ok is not None else None,
+                                 timeout=2.0)
             # edge detection on the reader threads (each touches its own fields of Triggers); the loop is woken
             # only when a save is due, not for each of the drive's 50 wheel states a second
             node.subscribe("wheels", lambda w: self.trigger_threadsafe(self.triggers.on_wheels(w)),
