@@ -5,7 +5,8 @@
 
 The ``drive`` group starts its own processes on free loopback ports: a Zenoh router, the
 simulated CAN bus (``services.sim.canbus``), the simulator (its emulated RoboteQ controllers, wall-paced at 1x)
-and the drive service on the wall clock with ``drive.rate_hz = 1000``. Rows:
+and the drive service on the wall clock with ``drive.rate_hz = 1000`` and its configured RPDO refresh (on change,
+else every ``drive.rpdo_refresh_s``). Rows:
 
 - ``drive.loop_hz`` / ``drive.jitter_p99_ms``: the loop's own measurement (``wheels``: mean rate and p99 of
   |period - 1 ms| over its last 2000 periods) after ``settle_s`` of running without commands.
@@ -168,10 +169,12 @@ def _stats(session, keys: Keys) -> dict:  # zenoh.Session
 
 
 def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None = None,
-                rpdo_refresh_s: float = 0.0, rate_hz: float = 1000.0) -> list[BenchRow]:
+                rpdo_refresh_s: float | None = None, rate_hz: float = 1000.0) -> list[BenchRow]:
     """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
     drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning), and the Zenoh router and the CAN bus
     server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise everything is time-shared.
+    ``rpdo_refresh_s`` None keeps the drive's configured RPDO refresh (``drive.rpdo_refresh_s``: on change, else
+    every 0.1 s); 0 sends RPDO1 every cycle, 2000 frames a second for the simulated bus to relay at 1 kHz.
     """
     if realtime is None:
         realtime = realtime_allowed()
@@ -197,7 +200,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
                             "--set", f"drive.rate_hz={rate_hz}", "--set", "robot.ax_max_mps2=1000.0",
                             "--set", "robot.ay_max_mps2=1000.0", "--set", "robot.alpha_max_radps2=1000.0",
                             "--set", f"drive.realtime_priority={50 if realtime else 0}",
-                            "--set", f"drive.rpdo_refresh_s={rpdo_refresh_s}",
+                            *([] if rpdo_refresh_s is None else ["--set", f"drive.rpdo_refresh_s={rpdo_refresh_s}"]),
                             "--set", f"drive.spin_s={0.0 if realtime else 0.0003}", fifo=fifo))
         latest: list[WheelStates] = []
         key = keys("wheels")
@@ -217,8 +220,10 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         watch = _RpdoWatch(channel, Path(tempfile.mkdtemp(prefix="zagv-bench-")) / "rpdo.txt")
         watch.wait_ready()
         client = open_session(ZenohSettings(connect=[endpoint]))  # a service's session, as nav publishes cmd_vel
-        deadline = time.monotonic() + 10.0  # the direct link to drive comes up through the router's gossip
-        while not list(client.info.peers_zid()) and time.monotonic() < deadline:
+        # the direct links to the drive and the simulator (the only peers) come up through the router's gossip; until
+        # then a command takes the router's hop
+        deadline = time.monotonic() + 10.0
+        while len(list(client.info.peers_zid())) < 2 and time.monotonic() < deadline:
             time.sleep(0.05)
         from services.drive.config import DriveConfig
         pub = client.declare_publisher(keys(DriveConfig().command_source), express=True)
