@@ -173,8 +173,8 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
     """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
     drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning), and the Zenoh router and the CAN bus
     server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise everything is time-shared.
-    ``rpdo_refresh_s`` None keeps the drive's configured RPDO refresh (``drive.rpdo_refresh_s``: on change, else
-    every 0.1 s); 0 sends RPDO1 every cycle, 2000 frames a second for the simulated bus to relay at 1 kHz.
+    ``rpdo_refresh_s`` None keeps the drive's configured RPDO refresh (on change, else every
+    ``drive.rpdo_refresh_s``); 0 sends RPDO1 every cycle, 2000 frames a second for the simulated bus to relay at 1 kHz.
     """
     if realtime is None:
         realtime = realtime_allowed()
