@@ -101,3 +101,67 @@ def test_an_extension_built_from_older_source_falls_back_to_numpy(monkeypatch) -
     value, grad = gridops.quadratic_sample(field, np.zeros(2), 0.1, np.array([[0.25, 0.25]]))
     ref_value, ref_grad = gridops._quadratic_sample_numpy(field, np.zeros(2), 0.1, np.array([[0.25, 0.25]]))
     assert value[0] != 0.0 and np.array_equal(value, ref_value) and np.array_equal(grad, ref_grad)
+
+
+def _nearest_point_field(shape: tuple[int, int], origin: np.ndarray, res: float, sigma_cells: float,
+                         points: np.ndarray) -> np.ndarray:
+    """exp(−d²/2σ²) of each cell centre's distance d (cells) to the nearest point whose nearest centre is within
+    ⌈3σ⌉ cells in x and y: the definition ``max_gaussian_splat`` implements, by brute force."""
+    radius = int(np.ceil(3.0 * sigma_cells))
+    iy, ix = np.mgrid[0:shape[0], 0:shape[1]]
+    u = (points[:, 0] - origin[0]) / res - 0.5
+    v = (points[:, 1] - origin[1]) / res - 0.5
+    field = np.zeros(shape, np.float32)
+    for pu, pv in zip(u, v, strict=True):
+        near = (np.abs(ix - np.rint(pu)) <= radius) & (np.abs(iy - np.rint(pv)) <= radius)
+        value = np.exp(-((ix - pu) ** 2 + (iy - pv) ** 2) / (2.0 * sigma_cells**2)).astype(np.float32)
+        field = np.where(near, np.maximum(field, value), field)
+    return field
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_max_gaussian_splat_is_the_nearest_point_field_in_c_and_numpy(seed: int) -> None:
+    """The compiled splat gives the NumPy fallback's bits, and both the brute-force nearest-point field, for points
+    inside the field, near and beyond its border (windows clipped), and NaN/inf points (skipped)."""
+    rng = np.random.default_rng(seed)
+    shape, origin, res, sigma = (31, 43), np.array([-0.7, 1.3]), 0.05, 1.5
+    points = np.column_stack([rng.uniform(-1.0, 1.6, 300), rng.uniform(1.0, 3.2, 300)])
+    points = np.vstack([points, [[np.nan, 2.0], [0.3, np.inf]]])
+    compiled = np.zeros(shape, np.float32)
+    gridops.max_gaussian_splat(compiled, origin, res, sigma, points)
+    fallback = np.zeros(shape, np.float32)
+    gridops._max_gaussian_splat_numpy(fallback, origin, res, sigma, int(np.ceil(3 * sigma)), points)
+    assert gridops._compiled_max_gaussian_splat is not None, "the C extension was not built (make install)"
+    assert np.array_equal(compiled, fallback)
+    expected = _nearest_point_field(shape, origin, res, sigma, points[:-2])
+    assert np.allclose(compiled, expected, atol=1e-7)
+    beyond = (points[:-2, 0] < origin[0]) | (points[:-2, 1] < origin[1]) | (points[:-2, 1] > origin[1] + shape[0] * res)
+    assert beyond.any() and compiled.min() >= 0.0 and compiled.max() > 0.9  # windows were clipped at the border
+    assert compiled.max() <= 1.0
+
+
+def test_max_gaussian_splat_peaks_at_one_on_every_point_however_sparse() -> None:
+    """Unlike a blur of splatted hits (a sum), the field along a row of points is 1 at each point whatever their
+    spacing: no slope from dense to sparse for a scan to slide down."""
+    res = 0.05
+    xs = np.round(np.concatenate([np.arange(0.0, 1.0, 0.05), np.arange(1.0, 3.0, 0.5)]), 6)  # then 10x sparser
+    points = np.column_stack([xs, np.full(len(xs), 0.5)]) + 0.5 * res  # on cell centres
+    field = np.zeros((20, 70), np.float32)
+    gridops.max_gaussian_splat(field, np.array([-0.2, 0.0]), res, 1.5, points)
+    row = field[10]
+    on_points = np.rint((xs + 0.2) / res).astype(int)
+    assert np.allclose(row[on_points], 1.0)
+    assert row[on_points[-2] + 5] < 0.01  # half-way between sparse points: the field dips to the floor
+
+
+def test_max_gaussian_splat_refuses_wrong_types() -> None:
+    with pytest.raises(ValueError, match="float32 field"):
+        gridops.max_gaussian_splat(np.zeros((4, 4)), np.zeros(2), 0.1, 1.5, np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="must be > 0"):
+        gridops.max_gaussian_splat(np.zeros((4, 4), np.float32), np.zeros(2), 0.0, 1.5, np.zeros((1, 2)))
+    if gridops._gridops is None:
+        return
+    with pytest.raises(ValueError, match=r"shape \(N, 2\)"):
+        gridops._gridops.max_gaussian_splat(np.zeros((4, 4), np.float32), 0.0, 0.0, 0.1, 1.5, 5, np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="writable"):
+        gridops._gridops.max_gaussian_splat(np.zeros((4, 4)), 0.0, 0.0, 0.1, 1.5, 5, np.zeros((1, 2)))

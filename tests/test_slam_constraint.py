@@ -141,6 +141,22 @@ def test_view_profiles_tell_seen_from_unseen_points():
         ViewProfiles.from_scans([origin], [])
 
 
+def test_the_shortest_ray_leaves_the_recess_behind_a_jamb_unseen():
+    """A jamb 2 m ahead hides part of the recess behind it; the next bearing's ray passes the jamb's edge and ends on
+    the recess's back wall. By the longest ray within a bin and its neighbours, a point on the hidden part counts as
+    seen; by the shortest, it does not. Both still see the jamb, the far wall and the free space before them."""
+    origin = np.zeros(2)
+    bearings = np.radians(np.arange(-20.0, 20.0, 0.5))
+    ranges = np.where(bearings < 0.0, 2.0, 5.0)  # the jamb covers bearings below 0, the back wall the rest
+    hits = np.c_[ranges * np.cos(bearings), ranges * np.sin(bearings)]
+    hidden = np.array([[4.0, -0.01]])  # behind the jamb, just across the edge from the first ray that passed it
+    probes = np.vstack([hidden, [[2.0 * np.cos(-0.1), 2.0 * np.sin(-0.1)], [5.0, 0.5], [1.0, -0.1]]])
+    longest = ViewProfiles.from_scans([origin], [hits]).seen(probes, 0.05)
+    shortest = ViewProfiles.from_scans([origin], [hits], shortest_ray=True).seen(probes, 0.05)
+    assert longest.tolist() == [True, True, True, True]
+    assert shortest.tolist() == [False, True, True, True]
+
+
 def _bias_along_corridor(margin_m: float) -> float:
     """Mean along-corridor error of matches against a submap of 20 keyframes 0.5 m apart behind the robot (exact
     poses), in the corridor with door recesses, with or without leaving out the points the submap never saw."""

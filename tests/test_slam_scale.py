@@ -45,9 +45,12 @@ def _mapped_over_true(step_m: float, config: SlamConfig) -> float:
     return math.hypot(*(poses[b, :2] - poses[a, :2])) / true_m
 
 
+@pytest.mark.parametrize("polish", [False, True])
 @pytest.mark.parametrize("step_m", [0.25, 1.0])
-def test_the_mapped_corridor_has_its_true_length(step_m: float) -> None:
-    ratio = _mapped_over_true(step_m, SlamConfig())
+def test_the_mapped_corridor_has_its_true_length(step_m: float, polish: bool) -> None:
+    """Also with each match polished on the nearest-hit field (``SlamConfig.polish_nearest_hit``), whose shortest-ray
+    visibility test keeps the recesses' hidden backs out of it (by the longest ray it mapped +0.96 / +0.67 %)."""
+    ratio = _mapped_over_true(step_m, SlamConfig(polish_nearest_hit=polish))
     assert abs(ratio - 1.0) < 0.003, f"the corridor maps {100 * (ratio - 1):+.2f} % long"
 
 

@@ -20,6 +20,7 @@ except ImportError:  # built at install where a C compiler was available (setup.
     _gridops = None
 # an extension built from an older source lacks the newer entry points: each falls back to NumPy on its own
 _compiled_quadratic_sample = getattr(_gridops, "quadratic_sample", None)
+_compiled_max_gaussian_splat = getattr(_gridops, "max_gaussian_splat", None)
 
 
 def distance_transform_edt(grid: np.ndarray, sampling: float = 1.0) -> np.ndarray:
@@ -104,3 +105,40 @@ def _quadratic_sample_numpy(field: np.ndarray, origin_xy_m: np.ndarray, resoluti
     value = np.where(ok, value, 0.0)
     grad[~ok] = 0.0
     return value, grad
+
+
+def max_gaussian_splat(field: np.ndarray, origin_xy_m: np.ndarray, resolution_m: float, sigma_cells: float,
+                       points_xy_m: np.ndarray) -> None:
+    """In place: field[iy, ix] = max(field[iy, ix], exp(−d² / 2σ²)) over the points (N, 2), d the distance in cells
+    from the cell centre (origin + (i + 0.5) * res) to the point, for every centre within ⌈3σ⌉ cells (a square
+    window) of the point's nearest centre; ``field`` is a C-contiguous float32 array, and cells beyond it are
+    skipped. The field is then the likelihood field M(p) = exp(−d(p)² / 2σ²) of the distance d(p) to the nearest
+    point (Thrun et al., Probabilistic Robotics §6.4), truncated at 3σ, sampled at cell centres."""
+    if field.dtype != np.float32 or not field.flags.c_contiguous or field.ndim != 2:
+        raise ValueError("max_gaussian_splat: expected a C-contiguous 2-D float32 field")
+    if not resolution_m > 0.0 or not sigma_cells > 0.0:
+        raise ValueError("max_gaussian_splat: resolution and sigma must be > 0")
+    points = np.ascontiguousarray(points_xy_m, dtype=np.float64).reshape(-1, 2)
+    radius = int(np.ceil(3.0 * sigma_cells))
+    if _compiled_max_gaussian_splat is not None:
+        _compiled_max_gaussian_splat(field, float(origin_xy_m[0]), float(origin_xy_m[1]), float(resolution_m),
+                                     float(sigma_cells), radius, points)
+        return
+    _max_gaussian_splat_numpy(field, origin_xy_m, resolution_m, sigma_cells, radius, points)
+
+
+def _max_gaussian_splat_numpy(field: np.ndarray, origin_xy_m: np.ndarray, resolution_m: float, sigma_cells: float,
+                              radius: int, points: np.ndarray) -> None:
+    """``max_gaussian_splat`` in NumPy (the fallback without the C extension, and its reference in tests)."""
+    height, width = field.shape
+    points = points[np.isfinite(points).all(axis=1)]
+    u = (points[:, 0] - origin_xy_m[0]) / resolution_m - 0.5
+    v = (points[:, 1] - origin_xy_m[1]) / resolution_m - 0.5
+    offsets = np.arange(-radius, radius + 1)
+    for dy in offsets:  # one window row at a time: (N, 2r + 1) temporaries instead of (N, (2r + 1)²)
+        y = np.rint(v).astype(np.intp) + dy
+        x = np.rint(u).astype(np.intp)[:, None] + offsets[None, :]
+        d2 = (x - u[:, None]) ** 2 + ((y - v) ** 2)[:, None]
+        value = np.exp(-d2 / (2.0 * sigma_cells**2)).astype(np.float32)
+        inside = (x >= 0) & (x < width) & ((y >= 0) & (y < height))[:, None]
+        np.maximum.at(field.ravel(), (np.broadcast_to(y[:, None], x.shape) * width + x)[inside], value[inside])

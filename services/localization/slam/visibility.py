@@ -33,12 +33,24 @@ class ViewProfiles:
     max_range_m: np.ndarray
 
     @classmethod
-    def from_scans(cls, origins_xy_m: list[np.ndarray], hits_xy_m: list[np.ndarray], n_bins: int = 720) -> ViewProfiles:
-        """Profiles of scans given as world-frame laser origins (2,) and hit points (N, 2)."""
+    def from_scans(cls, origins_xy_m: list[np.ndarray], hits_xy_m: list[np.ndarray], n_bins: int = 720, *,
+                   shortest_ray: bool = False) -> ViewProfiles:
+        """Profiles of scans given as world-frame laser origins (2,) and hit points (N, 2); ``shortest_ray``: the
+        shortest hit range over a bin and its neighbours instead of the longest (a jamb hides the recess behind)."""
         if len(origins_xy_m) != len(hits_xy_m):
             raise ValueError(f"{len(origins_xy_m)} origins for {len(hits_xy_m)} scans")
         if n_bins < 8:
             raise ValueError(f"n_bins must be at least 8 (got {n_bins})")
+        if shortest_ray:
+            shortest = np.full((len(hits_xy_m), n_bins), np.inf)
+            for k, (origin, hits) in enumerate(zip(origins_xy_m, hits_xy_m, strict=True)):
+                if len(hits) == 0:
+                    continue
+                delta = np.asarray(hits, float) - np.asarray(origin, float)
+                np.minimum.at(shortest[k], _bins(delta, n_bins), np.hypot(delta[:, 0], delta[:, 1]))
+            near = np.minimum(shortest, np.minimum(np.roll(shortest, 1, axis=1), np.roll(shortest, -1, axis=1)))
+            near[np.isinf(near)] = -1.0
+            return cls(np.asarray(origins_xy_m, float).reshape(-1, 2), near)
         profiles = np.full((len(hits_xy_m), n_bins), -1.0)
         for k, (origin, hits) in enumerate(zip(origins_xy_m, hits_xy_m, strict=True)):
             if len(hits) == 0:
