@@ -220,6 +220,33 @@ static PyObject *label(PyObject *self, PyObject *args) {
     return Py_BuildValue("(NL)", out, (long long)count);
 }
 
+/* The float32 field (2-D, C-contiguous, writable when asked) and float64 points (N x 2) of quadratic_sample and
+ * max_gaussian_splat; 0 with both buffers held, -1 with none held and a ValueError naming `name`. */
+static int field_and_points(PyObject *field_obj, PyObject *points_obj, Py_buffer *field, Py_buffer *points,
+                            int writable, const char *name) {
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(field_obj, field, flags) < 0) {
+        return -1;
+    }
+    if (field->ndim != 2 || field->itemsize != 4 || strcmp(field->format, "f") != 0) {
+        PyBuffer_Release(field);
+        PyErr_Format(PyExc_ValueError, "%s: expected a %sC-contiguous 2-D float32 field", name,
+                     writable ? "writable " : "");
+        return -1;
+    }
+    if (PyObject_GetBuffer(points_obj, points, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
+        PyBuffer_Release(field);
+        return -1;
+    }
+    if (points->ndim != 2 || points->shape[1] != 2 || points->itemsize != 8 || strcmp(points->format, "d") != 0) {
+        PyBuffer_Release(field);
+        PyBuffer_Release(points);
+        PyErr_Format(PyExc_ValueError, "%s: expected C-contiguous float64 points of shape (N, 2)", name);
+        return -1;
+    }
+    return 0;
+}
+
 static PyObject *quadratic_sample(PyObject *self, PyObject *args) {
     PyObject *field_obj, *points_obj;
     double ox, oy, res;
@@ -227,22 +254,7 @@ static PyObject *quadratic_sample(PyObject *self, PyObject *args) {
     if (!PyArg_ParseTuple(args, "OdddO", &field_obj, &ox, &oy, &res, &points_obj)) {
         return NULL;
     }
-    if (PyObject_GetBuffer(field_obj, &field, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
-        return NULL;
-    }
-    if (field.ndim != 2 || field.itemsize != 4 || strcmp(field.format, "f") != 0) {
-        PyBuffer_Release(&field);
-        PyErr_SetString(PyExc_ValueError, "quadratic_sample: expected a C-contiguous 2-D float32 field");
-        return NULL;
-    }
-    if (PyObject_GetBuffer(points_obj, &points, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
-        PyBuffer_Release(&field);
-        return NULL;
-    }
-    if (points.ndim != 2 || points.shape[1] != 2 || points.itemsize != 8 || strcmp(points.format, "d") != 0) {
-        PyBuffer_Release(&field);
-        PyBuffer_Release(&points);
-        PyErr_SetString(PyExc_ValueError, "quadratic_sample: expected C-contiguous float64 points of shape (N, 2)");
+    if (field_and_points(field_obj, points_obj, &field, &points, 0, "quadratic_sample") < 0) {
         return NULL;
     }
     Py_ssize_t height = field.shape[0], width = field.shape[1], n = points.shape[0];
@@ -293,22 +305,7 @@ static PyObject *max_gaussian_splat(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "max_gaussian_splat: resolution and sigma must be > 0, radius >= 0");
         return NULL;
     }
-    if (PyObject_GetBuffer(field_obj, &field, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND | PyBUF_WRITABLE) < 0) {
-        return NULL;
-    }
-    if (field.ndim != 2 || field.itemsize != 4 || strcmp(field.format, "f") != 0) {
-        PyBuffer_Release(&field);
-        PyErr_SetString(PyExc_ValueError, "max_gaussian_splat: expected a writable C-contiguous 2-D float32 field");
-        return NULL;
-    }
-    if (PyObject_GetBuffer(points_obj, &points, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_ND) < 0) {
-        PyBuffer_Release(&field);
-        return NULL;
-    }
-    if (points.ndim != 2 || points.shape[1] != 2 || points.itemsize != 8 || strcmp(points.format, "d") != 0) {
-        PyBuffer_Release(&field);
-        PyBuffer_Release(&points);
-        PyErr_SetString(PyExc_ValueError, "max_gaussian_splat: expected C-contiguous float64 points of shape (N, 2)");
+    if (field_and_points(field_obj, points_obj, &field, &points, 1, "max_gaussian_splat") < 0) {
         return NULL;
     }
     Py_ssize_t height = field.shape[0], width = field.shape[1], n = points.shape[0];

@@ -135,9 +135,10 @@ def _max_gaussian_splat_numpy(field: np.ndarray, origin_xy_m: np.ndarray, resolu
     u = (points[:, 0] - origin_xy_m[0]) / resolution_m - 0.5
     v = (points[:, 1] - origin_xy_m[1]) / resolution_m - 0.5
     offsets = np.arange(-radius, radius + 1)
+    x = np.rint(u).astype(np.intp)[:, None] + offsets[None, :]
+    centre_y = np.rint(v).astype(np.intp)
     for dy in offsets:  # one window row at a time: (N, 2r + 1) temporaries instead of (N, (2r + 1)²)
-        y = np.rint(v).astype(np.intp) + dy
-        x = np.rint(u).astype(np.intp)[:, None] + offsets[None, :]
+        y = centre_y + dy
         d2 = (x - u[:, None]) ** 2 + ((y - v) ** 2)[:, None]
         value = np.exp(-d2 / (2.0 * sigma_cells**2)).astype(np.float32)
         inside = (x >= 0) & (x < width) & ((y >= 0) & (y < height))[:, None]

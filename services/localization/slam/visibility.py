@@ -41,23 +41,15 @@ class ViewProfiles:
             raise ValueError(f"{len(origins_xy_m)} origins for {len(hits_xy_m)} scans")
         if n_bins < 8:
             raise ValueError(f"n_bins must be at least 8 (got {n_bins})")
-        if shortest_ray:
-            shortest = np.full((len(hits_xy_m), n_bins), np.inf)
-            for k, (origin, hits) in enumerate(zip(origins_xy_m, hits_xy_m, strict=True)):
-                if len(hits) == 0:
-                    continue
-                delta = np.asarray(hits, float) - np.asarray(origin, float)
-                np.minimum.at(shortest[k], _bins(delta, n_bins), np.hypot(delta[:, 0], delta[:, 1]))
-            near = np.minimum(shortest, np.minimum(np.roll(shortest, 1, axis=1), np.roll(shortest, -1, axis=1)))
-            near[np.isinf(near)] = -1.0
-            return cls(np.asarray(origins_xy_m, float).reshape(-1, 2), near)
-        profiles = np.full((len(hits_xy_m), n_bins), -1.0)
+        reduce, empty = (np.minimum, np.inf) if shortest_ray else (np.maximum, -1.0)
+        profiles = np.full((len(hits_xy_m), n_bins), empty)
         for k, (origin, hits) in enumerate(zip(origins_xy_m, hits_xy_m, strict=True)):
             if len(hits) == 0:
                 continue
             delta = np.asarray(hits, float) - np.asarray(origin, float)
-            np.maximum.at(profiles[k], _bins(delta, n_bins), np.hypot(delta[:, 0], delta[:, 1]))
-        widened = np.maximum(profiles, np.maximum(np.roll(profiles, 1, axis=1), np.roll(profiles, -1, axis=1)))
+            reduce.at(profiles[k], _bins(delta, n_bins), np.hypot(delta[:, 0], delta[:, 1]))
+        widened = reduce(profiles, reduce(np.roll(profiles, 1, axis=1), np.roll(profiles, -1, axis=1)))
+        widened[np.isinf(widened)] = -1.0  # no hit in the bin or its neighbours
         return cls(np.asarray(origins_xy_m, float).reshape(-1, 2), widened)
 
     def seen(self, points_xy_m: np.ndarray, margin_m: float) -> np.ndarray:
