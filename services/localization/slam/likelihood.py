@@ -10,7 +10,8 @@ A level holds one of two fields of the map's hit points, σ = ``sigma_cells`` ce
   along corridors.
 - nearest hit: M = exp(-d² / 2σ²) with d the distance to the nearest hit (the likelihood field of Thrun et al.,
   Probabilistic Robotics §6.4): every hit a peak of 1, however sparse its neighbours, so no ridge has a slope.
-  The mapper can polish each local match on it (``SlamConfig.polish_nearest_hit``).
+  The mapper can polish corridor matches along the corridor on it (``SlamConfig.polish_nearest_hit``,
+  ``polish_axis_only``).
 
 On the corrected infinite-corridor log (1° beams, 1 m steps), each scan refined against the one before it from the
 reference's relative pose came out, over the pairs that fix both directions, 0.93 % short with the density field
