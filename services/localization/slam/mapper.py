@@ -528,9 +528,20 @@ class GraphSlam:
         finest = MultiResolutionGrid(self._submap.levels[:1])
         pose = refine(finest, seen_points, result.pose, prior_pose=None if prior_information is None else predicted,
                       prior_information=prior_information, point_weights=self._point_weights(seen_points)).pose
-        moved_m = float(np.hypot(*(pose[:2] - result.pose[:2])))
-        turned_rad = abs(float(wrap_angle(pose[2] - result.pose[2])))
-        return None if moved_m > c.resolution_m or turned_rad > c.visibility_max_turn_rad else pose
+        return pose if self._within_a_cell(result.pose, pose) else None
+
+    def _within_a_cell(self, pose: np.ndarray, refined: np.ndarray) -> bool:
+        """Whether a refinement of ``pose`` stayed within one cell and ``visibility_max_turn_rad`` of it (the reach
+        of the visibility refinement and of the polish)."""
+        c = self.config
+        moved_m = float(np.hypot(*(refined[:2] - pose[:2])))
+        turned_rad = abs(float(wrap_angle(refined[2] - pose[2])))
+        return moved_m <= c.resolution_m and turned_rad <= c.visibility_max_turn_rad
+
+    def _corridor_match(self) -> bool:
+        """Whether the latest match fixes its weakest direction less than ``visibility_below_ratio`` as well as its
+        strongest (a corridor): where the visibility refinement and the polish along corridors act."""
+        return self.last_constraint.weakest_ratio < self.config.visibility_below_ratio
 
     def _constraint_at(self, points: np.ndarray, pose: np.ndarray) -> MatchConstraint:
         """What a match of ``points`` at ``pose`` fixes, from the submap's translation curvature there."""
@@ -548,7 +559,7 @@ class GraphSlam:
         assert self._submap is not None
         pose = result.pose
         self.last_constraint = self._constraint_at(points, pose)
-        if self.last_constraint.weakest_ratio < self.config.visibility_below_ratio:
+        if self._corridor_match():
             refined = self._without_unseen(result, points, predicted, prior_information)
             if refined is not None:
                 pose = refined
@@ -572,7 +583,7 @@ class GraphSlam:
         c = self.config
         if self._submap_exact is None:
             return pose
-        if c.polish_axis_only and self.last_constraint.weakest_ratio >= c.visibility_below_ratio:
+        if c.polish_axis_only and not self._corridor_match():
             return pose
         seen_points = points
         if self._submap_views_strict is not None:
@@ -583,9 +594,7 @@ class GraphSlam:
         polished = refine(MultiResolutionGrid([self._submap_exact]), seen_points, pose,
                           prior_pose=None if prior_information is None else predicted,
                           prior_information=prior_information, point_weights=self._point_weights(seen_points)).pose
-        moved_m = float(np.hypot(*(polished[:2] - pose[:2])))
-        turned_rad = abs(float(wrap_angle(polished[2] - pose[2])))
-        if moved_m > c.resolution_m or turned_rad > c.visibility_max_turn_rad:
+        if not self._within_a_cell(pose, polished):
             return pose
         if not c.polish_axis_only:
             return polished
