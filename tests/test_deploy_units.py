@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import shlex
 import shutil
 import socket
 import subprocess
@@ -226,6 +227,32 @@ def test_cli_writes_every_unit_and_names_them(venv: Path, tmp_path: Path, capsys
     assert "zagv-nav.service" in install_units.unit_names(compose=False)
     assert main(["install-units", "--venv", str(venv), "--user", "root", "--dest", str(dest)]) == 2
     assert "--user" in capsys.readouterr().err
+
+
+def test_drive_unit_keeps_idle_cpus_polling_while_it_runs_unless_told_not_to(venv: Path, tmp_path: Path) -> None:
+    """ExecStartPre / ExecStopPost set every CPU's PM QoS resume latency to n/a and back to 0: run both scripts as
+    systemd would (after its $$ -> $) on a sysfs-shaped folder of three CPUs."""
+    drive = rendered(options(venv))["zagv-drive.service"]
+    start, stop = one(drive, "Service", "ExecStartPre"), one(drive, "Service", "ExecStopPost")
+    sysfs = tmp_path / "cpu"
+    files = []
+    for name in ("cpu0", "cpu1", "cpu11", "cpufreq"):
+        path = sysfs / name / "power" / "pm_qos_resume_latency_us"
+        path.parent.mkdir(parents=True)
+        path.write_text("0\n")
+        files.append(path)
+
+    def run_as_systemd(line: str) -> None:
+        assert line.startswith("-+/bin/sh -c "), line  # full privileges, a failure does not stop the drive
+        script = shlex.split(line[2:])[2].replace("$$", "$").replace("/sys/devices/system/cpu/", f"{sysfs}/")
+        subprocess.run(["/bin/sh", "-c", script], check=True, timeout=10)
+
+    run_as_systemd(start)
+    assert [f.read_text() for f in files] == ["n/a\n", "n/a\n", "n/a\n", "0\n"]  # every CPU, nothing else
+    run_as_systemd(stop)
+    assert [f.read_text() for f in files] == ["0\n"] * 4
+    quiet = rendered(options(venv, cpu_poll=False))["zagv-drive.service"]
+    assert "ExecStartPre" not in quiet["Service"] and "ExecStopPost" not in quiet["Service"]
 
 
 def systemd_analyze_verify(unit_dir: Path) -> subprocess.CompletedProcess[str]:

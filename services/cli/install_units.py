@@ -25,6 +25,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--drive-cpu", type=int, default=1, help="CPU the drive is pinned to (default %(default)s)")
     p.add_argument("--drive-rt-priority", type=int, default=install_units.DEFAULT_DRIVE_RT_PRIORITY,
                    help="SCHED_FIFO priority of the drive (default %(default)s)")
+    p.add_argument("--cpu-poll", action=argparse.BooleanOptionalAction, default=True,
+                   help="while the drive runs, idle CPUs poll instead of sleeping, so that no command waits for a "
+                        "CPU to wake (the PM QoS resume latency of every CPU set to n/a; costs power). The "
+                        "default; --no-cpu-poll leaves the CPUs' idle states alone")
     p.add_argument("--compose", action=argparse.BooleanOptionalAction, default=True,
                    help=f"run {', '.join(install_units.COMPOSED)} in one process, zagv-components.service "
                         "(composition: less memory and CPU; a crash restarts them together). The default; "

@@ -48,6 +48,7 @@ from services.common.robot import RobotSpec
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.drive.controller import DriveController, ModuleFeedback, WheelOdometry
+from services.drive.cpu_latency import NO_CPU_LATENCY_REQUEST, cpu_latency_in_force_us
 from services.drive.kinematics import SwerveKinematics, Twist
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -168,11 +169,23 @@ def _stats(session, keys: Keys) -> dict:  # zenoh.Session
     return {}
 
 
+def _latency_in_force() -> str:
+    try:
+        latency_us = cpu_latency_in_force_us()
+    except OSError:
+        return "unknown"
+    return "none" if latency_us >= NO_CPU_LATENCY_REQUEST else f"{latency_us} us"
+
+
 def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None = None,
-                rpdo_refresh_s: float | None = None, rate_hz: float = 1000.0) -> list[BenchRow]:
+                rpdo_refresh_s: float | None = None, rate_hz: float = 1000.0,
+                cpu_latency_us: int | None = 0) -> list[BenchRow]:
     """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
-    drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning), and the Zenoh router and the CAN bus
-    server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise everything is time-shared.
+    drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning, and its CPU latency request
+    ``drive.cpu_latency_us = cpu_latency_us``: idle CPUs poll, as the robot's unit keeps the drive's CPU polling), and
+    the Zenoh router and the CAN bus server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise
+    everything is time-shared and no latency request is made. The ``drive.loop_hz`` row's note gives the request
+    the kernel had in force while the commands were measured.
     ``rpdo_refresh_s`` None keeps the drive's configured RPDO refresh (on change, else every
     ``drive.rpdo_refresh_s``); 0 sends RPDO1 every cycle, 2000 frames a second for the simulated bus to relay at 1 kHz.
     """
@@ -201,7 +214,9 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
                             "--set", "robot.ay_max_mps2=1000.0", "--set", "robot.alpha_max_radps2=1000.0",
                             "--set", f"drive.realtime_priority={50 if realtime else 0}",
                             *([] if rpdo_refresh_s is None else ["--set", f"drive.rpdo_refresh_s={rpdo_refresh_s}"]),
-                            "--set", f"drive.spin_s={0.0 if realtime else 0.0003}", fifo=fifo))
+                            "--set", f"drive.spin_s={0.0 if realtime else 0.0003}",
+                            *(["--set", f"drive.cpu_latency_us={cpu_latency_us}"]
+                              if realtime and cpu_latency_us is not None else []), fifo=fifo))
         latest: list[WheelStates] = []
         key = keys("wheels")
         sub = watcher.declare_subscriber(key, lambda s: latest.append(codec.decode_as(WheelStates,
@@ -214,7 +229,8 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
         time.sleep(settle_s)
         quiet = latest[-1]
         mode = "SCHED_FIFO" if realtime else "time-shared"
-        rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz", f"1000 (target; {mode})"),
+        rows = [BenchRow("drive.loop_hz", quiet.loop_hz, "Hz",
+                         f"1000 (target; {mode}; CPU latency request in force: {_latency_in_force()})"),
                 BenchRow("drive.jitter_p99_ms", quiet.loop_jitter_p99_ms, "ms", "<= 0.2")]
 
         watch = _RpdoWatch(channel, Path(tempfile.mkdtemp(prefix="zagv-bench-")) / "rpdo.txt")

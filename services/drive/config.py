@@ -9,6 +9,7 @@ import msgspec
 
 from services.common.motor_units import MotorUnits
 from services.drive.canlink import LinkSettings
+from services.drive.cpu_latency import MAX_CPU_LATENCY_US
 from services.drive.kinematics import SteeringLimits
 
 _LINK = LinkSettings()  # the link's defaults, repeated nowhere else
@@ -42,6 +43,11 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
     spin_s: float = 0.0003
     wake_on_command: bool = True
     realtime_priority: int = 0
+    #: a PM QoS CPU latency request (us) held while the drive runs (``/dev/cpu_dma_latency``, needs root): 0 keeps
+    #: idle CPUs polling, so a command does not wait for a CPU to leave a deep idle state. None = no request. Under
+    #: systemd the drive's unit keeps every CPU polling instead (their ``pm_qos_resume_latency_us``; install-units
+    #: ``--cpu-poll``, the default)
+    cpu_latency_us: int | None = None
     #: RPDO1 goes out when the commands change, and otherwise every ``rpdo_refresh_s`` so that the controllers'
     #: command watchdog (``RWD``, 1000 ms by default) stays fed: CANopen's event-driven PDO with an event timer.
     #: 0 = every cycle. At 100 Hz on the simulated bus, sending unchanged frames every cycle was a third of the
@@ -91,6 +97,9 @@ class DriveConfig(msgspec.Struct, forbid_unknown_fields=True):
         if not (math.isfinite(self.rpdo_refresh_s) and 0.0 <= self.rpdo_refresh_s <= MAX_RPDO_REFRESH_S):
             raise ValueError(f"drive.rpdo_refresh_s must be in [0, {MAX_RPDO_REFRESH_S}] s (well under the "
                              f"controllers' command watchdog), got {self.rpdo_refresh_s}")
+        if self.cpu_latency_us is not None and not 0 <= self.cpu_latency_us <= MAX_CPU_LATENCY_US:
+            raise ValueError(f"drive.cpu_latency_us must be in [0, {MAX_CPU_LATENCY_US}] us or unset, "
+                             f"got {self.cpu_latency_us}")
         if not 0.0 <= self.imu_yaw_weight <= 1.0:
             raise ValueError(f"drive.imu_yaw_weight must be in [0, 1], got {self.imu_yaw_weight}")
         if not self.steer_max_rad - self.steer_min_rad >= math.pi:

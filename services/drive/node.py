@@ -21,6 +21,7 @@ from services.common.service import ServiceContext
 from services.drive.canlink import RoboteqLink
 from services.drive.config import DriveConfig
 from services.drive.controller import DriveController, WheelOdometry
+from services.drive.cpu_latency import CpuLatencyError, CpuLatencyRequest
 from services.drive.enable import (
     DISABLED,
     ENABLED,
@@ -209,7 +210,21 @@ class DriveService:
             return "CAN link up"
         return f"CAN link down: {self.loop.link_fault}" if self.loop.link_attempts else None
 
+    def request_cpu_latency(self) -> CpuLatencyRequest | None:
+        """Hold ``drive.cpu_latency_us`` while the drive runs; a machine that refuses it costs latency, not the
+        drive: a warning names why."""
+        if self.cfg.cpu_latency_us is None:
+            return None
+        try:
+            request = CpuLatencyRequest(self.cfg.cpu_latency_us)
+        except CpuLatencyError as exc:
+            log.warning("drive.cpu_latency_us=%d not applied: %s", self.cfg.cpu_latency_us, exc.strerror)
+            return None
+        log.info("holding a CPU latency request of %d us while the drive runs", request.latency_us)
+        return request
+
     async def run(self) -> None:
+        cpu_latency = self.request_cpu_latency()
         if self.imu_reader is not None:
             self.imu_reader.start()
         self.loop.start()
@@ -223,6 +238,8 @@ class DriveService:
             await asyncio.to_thread(self.loop.stop)
             if self.imu_reader is not None:
                 await asyncio.to_thread(self.imu_reader.stop)
+            if cpu_latency is not None:
+                cpu_latency.close()
 
 
 async def run(ctx: ServiceContext) -> None:

@@ -54,6 +54,8 @@ class UnitOptions:
     site: bool = False
     #: ``COMPOSED`` in one unit (zagv-components.service) instead of one unit each
     compose: bool = True
+    #: idle CPUs poll while the drive runs (every CPU's PM QoS resume latency n/a, back to 0 when it stops)
+    cpu_poll: bool = True
 
     @property
     def python(self) -> Path:
@@ -108,6 +110,24 @@ def check_options(opts: UnitOptions) -> list[str]:
     return warnings
 
 
+#: every CPU's PM QoS resume latency (sysfs): ``n/a`` = no idle state may add wake-up latency, 0 = no constraint
+CPU_RESUME_LATENCY_GLOB = "/sys/devices/system/cpu/cpu[0-9]*/power/pm_qos_resume_latency_us"
+
+
+def cpu_poll_lines(cpu_poll: bool) -> str:
+    """The drive unit's lines that keep idle CPUs polling while it runs. ``+`` runs them with full privileges (the
+    service itself has none), ``-`` lets the drive start on a kernel without the files; ``$$`` is systemd's literal $.
+    """
+    if not cpu_poll:
+        return "# idle CPUs sleep as usual while the drive runs (install-units --no-cpu-poll)"
+    def loop(value: str) -> str:
+        return f"/bin/sh -c 'for f in {CPU_RESUME_LATENCY_GLOB}; do echo {value} > \"$$f\"; done'"
+    return ("# while the drive runs, idle CPUs poll instead of sleeping: a command never waits for a CPU to leave\n"
+            "# a deep idle state (0.1 ms typical, milliseconds in the tail); it costs power (--no-cpu-poll: off)\n"
+            f"ExecStartPre=-+{loop('n/a')}\n"
+            f"ExecStopPost=-+{loop('0')}")
+
+
 def substitutions(opts: UnitOptions) -> dict[str, str]:
     if opts.router == "zenohd":
         router_exec = f"{opts.zenohd} -c {opts.zenoh_config}"
@@ -124,6 +144,7 @@ def substitutions(opts: UnitOptions) -> dict[str, str]:
         "CAN_INTERFACE": opts.can_interface,
         "DRIVE_CPU": str(opts.drive_cpu),
         "DRIVE_RT_PRIORITY": str(opts.drive_rt_priority),
+        "CPU_POLL": cpu_poll_lines(opts.cpu_poll),
         "ROUTER_KIND": "zenohd" if opts.router == "zenohd" else "zagv router",
         "ROUTER_TYPE": router_type,
         "ROUTER_EXEC": router_exec,
@@ -175,7 +196,7 @@ def run(args: argparse.Namespace) -> int:
     opts = UnitOptions(venv=Path(args.venv), user=args.user, config=config, can_interface=args.can_interface,
                        router=router, zenohd=zenohd, zenoh_config=zenoh_config, drive_cpu=args.drive_cpu,
                        drive_rt_priority=args.drive_rt_priority, site=args.site,
-                       compose=args.compose)
+                       compose=args.compose, cpu_poll=args.cpu_poll)
     try:
         warnings = check_options(opts)
         units = render_units(opts, Path(args.templates) if args.templates else None)
