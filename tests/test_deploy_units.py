@@ -225,6 +225,11 @@ def test_cli_writes_every_unit_and_names_them(venv: Path, tmp_path: Path, capsys
     capsys.readouterr()
     assert sorted(p.name for p in isolated.iterdir()) == sorted(install_units.unit_names(compose=False))
     assert "zagv-nav.service" in install_units.unit_names(compose=False)
+    assert "pm_qos_resume_latency_us" in (isolated / "zagv-drive.service").read_text()
+    sleeping = tmp_path / "sleeping"
+    assert main(["install-units", "--venv", str(venv), "--user", "zagv", "--dest", str(sleeping), "--no-cpu-poll"]) == 0
+    capsys.readouterr()
+    assert "pm_qos_resume_latency_us" not in (sleeping / "zagv-drive.service").read_text()
     assert main(["install-units", "--venv", str(venv), "--user", "root", "--dest", str(dest)]) == 2
     assert "--user" in capsys.readouterr().err
 
