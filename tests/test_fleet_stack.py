@@ -193,3 +193,20 @@ def test_the_later_robot_waits_for_the_narrow_passage(tmp_path) -> None:
     assert result["contacts"] == [], text[-4000:]
     assert_all_reached_without_contact(code, result, text, 2)
     print(text)
+
+
+def test_a_fleet_robots_composed_services_are_found_in_that_robots_container(tmp_path) -> None:
+    """``r2.lidar`` runs in ``r2.components`` (the container's line names its services without the robot), never
+    in another robot's; a service started on its own is its own process."""
+    from services.launch.stack_process import Stack
+
+    stack = Stack(tmp_path, None, fleet_size=3)
+    for n, rid in enumerate(("r1", "r2", "r3")):
+        stack.lines += [f"zagv          | started {rid}.drive (pid {100 + n})",
+                        f"zagv          | started {rid}.components (pid {200 + n})",
+                        f"{rid}.components | 16:27:54.5 INFO {rid}.components [zagv.container]: running lidar, "
+                        "safety, localization, nav, recorder in one process"]
+    assert stack.process_of("r2.lidar") == "r2.components"
+    assert stack.process_of("r3.recorder") == "r3.components"
+    assert stack.process_of("r1.drive") == "r1.drive"
+    assert {stack.pid(f"r2.{s}") for s in ("drive", "lidar", "safety", "nav")} == {101, 201}

@@ -71,7 +71,8 @@ def bench_fleet_footprint(window_s: float = 60.0) -> list[BenchRow]:
         try:
             stack.start(ready_timeout_s=400.0)
             asyncio.run(_start_routes(stack))
-            robot_pids = {rid: [stack.pid(f"{rid}.{s}") for s in ROBOT_SERVICES] for rid in ROUTES}
+            # each robot's processes once: composed (the default), lidar ... recorder share r1.components
+            robot_pids = {rid: sorted({stack.pid(f"{rid}.{s}") for s in ROBOT_SERVICES}) for rid in ROUTES}
             shared_pids = [stack.pid("sim")] + [stack.pid(f"{rid}.canbus") for rid in ROUTES]
             every = [p for pids in robot_pids.values() for p in pids] + shared_pids
             stamps: list[float] = []

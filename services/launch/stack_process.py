@@ -153,12 +153,14 @@ class Stack:
 
     def process_of(self, service: str) -> str:
         """The supervisor's name of the process ``service`` runs in: its own, or its container's (the container's
-        ``running a, b, ... in one process`` line) when it was never started on its own."""
+        ``running a, b, ... in one process`` line) when it was never started on its own. In a fleet, ``r2.lidar``
+        runs in ``r2.components``: the container line names its services without the robot."""
+        robot, _, bare = service.rpartition(".")
         with self._lock:
             own = any(re.search(rf"^zagv\s+\| started {re.escape(service)} \(pid \d+\)", line) for line in self.lines)
             containers = [m.group(1) for line in self.lines
                           if (m := re.search(r"^(\S+)\s+\| .*\[zagv\.container\]: running (.+) in one process", line))
-                          and service in m.group(2).split(", ")]
+                          and bare in m.group(2).split(", ") and m.group(1).startswith(f"{robot}." if robot else "")]
         return containers[-1] if containers and not own else service
 
     def pid(self, service: str) -> int:
