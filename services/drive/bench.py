@@ -182,7 +182,7 @@ def bench_drive(settle_s: float = 4.0, samples: int = 300, realtime: bool | None
                 cpu_latency_us: int | None = 0) -> list[BenchRow]:
     """The drive at 1 kHz against the simulated bus. ``realtime`` (default: when the machine allows it) runs the
     drive as deployed (process SCHED_FIFO 10, control thread 50, no spinning, and its CPU latency request
-    ``drive.cpu_latency_us = cpu_latency_us``: idle CPUs poll, as the robot's unit keeps the drive's CPU polling), and
+    ``drive.cpu_latency_us = cpu_latency_us``: idle CPUs poll, as the robot's drive unit keeps every CPU polling), and
     the Zenoh router and the CAN bus server at SCHED_FIFO 10 (the bus stands in for CAN hardware); otherwise
     everything is time-shared and no latency request is made. The ``drive.loop_hz`` row's note gives the request
     the kernel had in force while the commands were measured.
