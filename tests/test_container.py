@@ -8,6 +8,8 @@ import signal
 import subprocess
 import sys
 import threading
+from types import SimpleNamespace
+from typing import cast
 
 import pytest
 
@@ -16,9 +18,10 @@ from proto.messages import Odometry, Twist2D
 from services.client.status import collect
 from services.common.config import ConfigError
 from services.common.node import SUBSCRIBER_QUEUE, Node, SharedReader
+from services.common.service import PreparedService
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
-from services.launch.container import split_groups
+from services.launch.container import Container, parse_shared_loops, split_groups
 from services.launch.up import DEFAULT_COMPOSITION, StackPlan, compose_from_args, parse_compose
 from tests.support.waiting import wait_for
 
@@ -34,6 +37,34 @@ def test_groups_are_split_on_the_separator_and_checked():
         split_groups(["nav", "::"])
 
 
+def test_shared_loops_name_services_of_the_container_once():
+    names = ["lidar", "safety", "nav", "localization"]
+    assert parse_shared_loops(["nav, localization", "lidar,safety"], names) == [["nav", "localization"],
+                                                                               ["lidar", "safety"]]
+    with pytest.raises(ConfigError, match="'recorder' is not a service of this container"):
+        parse_shared_loops(["nav,recorder"], names)
+    with pytest.raises(ConfigError, match="nav is given twice"):
+        parse_shared_loops(["nav,localization", "nav,lidar"], names)
+    with pytest.raises(ConfigError, match="names no service"):
+        parse_shared_loops([" , "], names)
+
+
+def test_a_shared_loop_runs_where_its_first_service_was_and_the_others_keep_loops_of_their_own():
+    services = [cast(PreparedService, SimpleNamespace(name=n)) for n in ["lidar", "safety", "localization", "nav",
+                                                                         "recorder", "hmi_api"]]
+    groups = Container(services, [["nav", "localization", "recorder"], ["hmi_api", "lidar"]]).loop_groups()
+    assert [[p.name for p in g] for g in groups] == [["lidar", "hmi_api"], ["safety"],
+                                                     ["localization", "nav", "recorder"]]
+    assert [[p.name for p in g] for g in Container(services).loop_groups()] == [[n.name] for n in services]
+
+
+def test_a_container_refuses_a_shared_loop_naming_a_service_it_does_not_run():
+    result = subprocess.run([sys.executable, "-m", "services.launch.container", "--name", "c", "--shared-loop",
+                             "nav,bogus", "nav", "::", "localization"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "--shared-loop: 'bogus' is not a service of this container (nav, localization)" in result.stderr
+
+
 def test_zagv_up_runs_each_group_as_one_child_and_keeps_the_drive_apart():
     assert "drive" not in DEFAULT_COMPOSITION and "sim" not in DEFAULT_COMPOSITION
     plan = StackPlan(sim=True, compose=parse_compose(["default"]), run_dir="/nonexistent")
@@ -41,8 +72,12 @@ def test_zagv_up_runs_each_group_as_one_child_and_keeps_the_drive_apart():
     assert names == ["canbus", "sim", "drive", "components"]
     argv = plan.children()[-1].argv
     members = [argv[i + 1] for i, a in enumerate(argv) if a == "::"]
-    assert [argv[argv.index("--name") + 2], *members] == ["lidar", "safety", "localization", "nav", "recorder",
-                                                          "hmi_api"]
+    assert argv[argv.index("--name"):argv.index("--name") + 7] == [
+        "--name", "components", "--shared-loop", "lidar,safety", "--shared-loop", "localization,nav,recorder,hmi_api",
+        "lidar"]
+    assert members == ["safety", "localization", "nav", "recorder", "hmi_api"]
+    isolated = StackPlan(sim=True, compose=parse_compose(["default"]), run_dir="/x", shared_loop=False)
+    assert "--shared-loop" not in isolated.children()[-1].argv
     two = StackPlan(sim=False, compose=parse_compose(["lidar,safety", "nav,localization"]), run_dir="/x")
     assert [c.name for c in two.children()] == ["drive", "components", "components-2", "recorder", "hmi_api"]
     one_left = StackPlan(sim=False, only=["drive", "nav"], compose=parse_compose(["nav,localization"]), run_dir="/x")
@@ -164,6 +199,9 @@ def test_a_composed_stack_reaches_a_goal_answers_for_every_service_and_restarts_
     stack = stack_factory(None, speed=2.0, extra_args=["--compose"])
     stack.start(ready_timeout_s=120)
     composed = ["lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
+    stack.wait_line(r"running lidar, safety, localization, nav, recorder, hmi_api in one process "
+                    r"\(lidar, safety on one event loop\) \(localization, nav, recorder, hmi_api on one event loop\)",
+                    timeout_s=30)
     assert stack.pid("drive") != stack.pid("components")
     assert {stack.pid(s) for s in composed} == {stack.pid("components")}
     # every composed service answers a wildcard query (each replies on its own key: none is consolidated away)

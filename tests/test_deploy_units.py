@@ -392,7 +392,8 @@ def test_compose_runs_safety_localization_nav_and_recorder_in_one_unit(venv: Pat
     assert one(unit, "Service", "Type") == "notify" and one(unit, "Service", "NotifyAccess") == "main"
     assert words(unit, "Service", "IPAddressAllow") == ["localhost"]
     exec_start = one(unit, "Service", "ExecStart")
-    assert exec_start.startswith(f"{venv}/bin/python -m services.launch.container --name components safety ")
+    assert exec_start.startswith(f"{venv}/bin/python -m services.launch.container --name components "
+                                 "--shared-loop localization,nav,recorder safety ")
     members = [exec_start.split()[i + 1] for i, w in enumerate(exec_start.split()) if w == "::"]
     assert ["safety", *members] == install_units.COMPOSED
 

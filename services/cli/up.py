@@ -46,6 +46,9 @@ def add_stack_options(p: argparse.ArgumentParser) -> None:
                         "drive (and the simulator) in one process")
     p.add_argument("--no-compose", action="store_true",
                    help="every service in a process of its own (isolation: a crash restarts only that service)")
+    p.add_argument("--isolated-loops", action="store_true",
+                   help="in a composed process, run every service on an event loop of its own (by default the "
+                        "lidar and safety share one, localization, nav, recorder and hmi_api another)")
     p.add_argument("--foxglove-port", type=int, default=0,
                    help="serve Foxglove (WebSocket, 127.0.0.1) on this port (default: no Foxglove bridge)")
     p.add_argument("--start-seed", type=int, help="start the services in a random order drawn with this seed "

@@ -1,8 +1,18 @@
-"""``python -m services.launch.container [--name NAME] SERVICE ARGS... :: SERVICE ARGS...``: services in one process.
+"""``python -m services.launch.container [--name NAME] [--shared-loop A,B ...] SERVICE ARGS... :: SERVICE ARGS...``.
+
+Services in one process.
 
 Composition, as Nav2's component container runs its servers in one process (``use_composition``): each service
-keeps its own event loop (one thread each, so one service's long step does not stall another's loop), its own
-node, clock, health token and liveness watchdog, and takes the same arguments as ``python -m services.<name>``.
+keeps its own node, clock, health token and liveness watchdog, and takes the same arguments as
+``python -m services.<name>``. By default each service also has an event loop of its own, on a thread of its own
+(ROS 2's ``component_container_isolated``), so one service's long step does not stall another's loop.
+``--shared-loop A,B,...`` (repeatable, one loop per list) runs the services named there on one event loop instead
+(ROS 2's single-threaded ``component_container``): a message they all read wakes one loop instead of one per
+service, and they never wait for the GIL on one another. Every wake-up of a loop costs about 0.1 ms of CPU on a
+small PC and each thread that waits for the GIL is switched out and in again, which is most of what isolated loops
+cost beyond their own work (docs/performance.md, "Composition"). The price is that a long step of one delays the
+others; ``zagv up`` therefore runs the lidar and the collision monitor (the path from a scan to a stop, short
+steps only) on one loop and localization, nav and the rest on another.
 What they share is the process and one Zenoh session:
 - a message reaches the process once, and Zenoh hands it to every subscriber in the process (the separate processes
   each pay one receive per message: about 0.1 ms of CPU each on a small PC, docs/performance.md);
@@ -121,6 +131,24 @@ def service_spec(name: str) -> ServiceSpec:
     return SERVICE_SPECS[name]()
 
 
+def parse_shared_loops(values: list[str], names: list[str]) -> list[list[str]]:
+    """The ``--shared-loop`` groups: each comma-separated services of this container, none named twice."""
+    groups: list[list[str]] = []
+    seen: list[str] = []
+    for value in values:
+        shared = [n.strip() for n in value.split(",") if n.strip()]
+        if not shared:
+            raise ConfigError("--shared-loop names no service")
+        for name in shared:
+            if name not in names:
+                raise ConfigError(f"--shared-loop: {name!r} is not a service of this container ({', '.join(names)})")
+            if name in seen:
+                raise ConfigError(f"--shared-loop: {name} is given twice")
+            seen.append(name)
+        groups.append(shared)
+    return groups
+
+
 def prepare_all(groups: list[tuple[str, list[str]]]) -> list[PreparedService]:
     """Each service's validated config; they must agree on the Zenoh session they share."""
     prepared: list[PreparedService] = []
@@ -140,9 +168,11 @@ def prepare_all(groups: list[tuple[str, list[str]]]) -> list[PreparedService]:
 
 @dataclass
 class Container:
-    """The services of one process, each on its own thread and event loop."""
+    """The services of one process: those of each ``shared_loops`` group on one thread and event loop, each other
+    one on a thread and event loop of its own."""
 
     services: list[PreparedService]
+    shared_loops: list[list[str]] = field(default_factory=list)
     stopping: threading.Event = field(default_factory=threading.Event)
     _lock: threading.Lock = field(default_factory=threading.Lock)
     _contexts: dict[str, tuple[asyncio.AbstractEventLoop, ServiceContext]] = field(default_factory=dict)
@@ -164,18 +194,41 @@ class Container:
         if all_ready:
             systemd.notify("READY=1")
 
-    def _thread_main(self, prepared: PreparedService, session) -> None:
+    async def _run_one(self, prepared: PreparedService, session) -> None:
+        """Run one service on the current loop; how it ended is left for the main thread to report."""
         name = prepared.name
         error: BaseException | None = None
         try:
-            asyncio.run(run_service(prepared, session, handle_signals=False,
-                                    on_context=lambda ctx: self._register(name, ctx),
-                                    notify_ready=lambda: self._on_ready(name)))
+            await run_service(prepared, session, handle_signals=False,
+                              on_context=lambda ctx: self._register(name, ctx),
+                              notify_ready=lambda: self._on_ready(name))
         except BaseException as exc:  # reported by the main thread, which stops the rest
             error = exc
         with self._lock:
             self._ended[name] = error
         self._wake.set()
+
+    def _thread_main(self, group: list[PreparedService], session) -> None:
+        """One event loop running every service of ``group`` until each has ended."""
+        async def run_group() -> None:
+            await asyncio.gather(*(self._run_one(p, session) for p in group))
+
+        asyncio.run(run_group())
+
+    def loop_groups(self) -> list[list[PreparedService]]:
+        """The services of each event loop, in the order of the services: a shared loop where its first one is."""
+        groups: list[list[PreparedService]] = []
+        shared: dict[int, list[PreparedService]] = {}
+        for prepared in self.services:
+            k = next((i for i, names in enumerate(self.shared_loops) if prepared.name in names), None)
+            if k is None:
+                groups.append([prepared])
+                continue
+            if k not in shared:
+                shared[k] = []
+                groups.append(shared[k])
+            shared[k].append(prepared)
+        return groups
 
     def stop(self) -> None:
         """Set every service's stop event (any thread)."""
@@ -190,8 +243,9 @@ class Container:
     def run(self) -> int:
         """Run until a signal or until one service ends; 0 after a requested stop, 1 when a service ended."""
         session = open_session(self.services[0].zenoh)
-        threads = [threading.Thread(target=self._thread_main, args=(p, session), name=p.name, daemon=True)
-                   for p in self.services]
+        threads = [threading.Thread(target=self._thread_main, args=(group, session), daemon=True,
+                                    name="+".join(p.name for p in group))
+                   for group in self.loop_groups()]
         for thread in threads:
             thread.start()
         failed = False
@@ -223,11 +277,17 @@ def main(argv: list[str] | None = None) -> int:
     die_with_parent()
     argv = sys.argv[1:] if argv is None else argv
     container_name = "container"
-    if argv[:1] == ["--name"] and len(argv) > 1:
-        container_name, argv = argv[1], argv[2:]
+    shared_values: list[str] = []
+    while argv[:1] in (["--name"], ["--shared-loop"]) and len(argv) > 1:
+        if argv[0] == "--name":
+            container_name = argv[1]
+        else:
+            shared_values.append(argv[1])
+        argv = argv[2:]
     setup_logging(container_name, show_logger=True)
     try:
         groups = split_groups(argv)
+        shared = parse_shared_loops(shared_values, [n for n, _ in groups])
         services = prepare_all(groups)
     except ConfigError as exc:
         print(f"zagv container: {exc}", file=sys.stderr)
@@ -235,10 +295,11 @@ def main(argv: list[str] | None = None) -> int:
     if any(p.check_only for p in services):
         print(f"zagv {container_name}: config ok")
         return 0
-    container = Container(services)
+    container = Container(services, shared)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, frame: container.stop())
-    log.info("running %s in one process", ", ".join(p.name for p in services))
+    log.info("running %s in one process%s", ", ".join(p.name for p in services),
+             "".join(f" ({', '.join(group)} on one event loop)" for group in shared))
     return container.run()
 
 

@@ -75,6 +75,8 @@ class StackPlan:
     fleet: list[RobotSlot] = field(default_factory=list)
     #: composition: each group's services run in one process (``services.launch.container``), per robot
     compose: list[list[str]] = field(default_factory=list)
+    #: in a composed process, the services of each SHARED_LOOPS tuple run on one event loop; off: each on its own
+    shared_loop: bool = True
 
     @property
     def endpoint(self) -> str:
@@ -204,8 +206,11 @@ class StackPlan:
                         argv = [a for member in group for a in
                                 (SEPARATOR, member, *self.common_args(k), *self.service_sets(member, k))]
                         child = self.child_name(k, container_name(groups.index(group)))
+                        loop_args = [a for names in SHARED_LOOPS if self.shared_loop
+                                     for shared in [[s for s in group if s in names]] if len(shared) > 1
+                                     for a in ("--shared-loop", ",".join(shared))]
                         specs.append(ChildSpec(child, python_module("services.launch.container", "--name", child,
-                                                                    *argv[1:]), env=env))
+                                                                    *loop_args, *argv[1:]), env=env))
                 continue
             for k in robots:
                 argv = python_module(f"services.{name}", *self.common_args(k), *self.service_sets(name, k))
@@ -217,6 +222,13 @@ class StackPlan:
 #: ``zagv up --compose`` without a list: every service but the drive in one process. The drive keeps a process of
 #: its own: its control loop and CAN link should not wait for another service's step under the shared GIL.
 DEFAULT_COMPOSITION = ["lidar", "safety", "localization", "nav", "recorder", "hmi_api", "foxglove_bridge", "vda5050"]
+
+
+#: the services that share an event loop in a composed process (``--shared-loop``), one loop per tuple: their steps
+#: may wait for one another's. The path from a scan to a stop (the lidar and the collision monitor, short steps
+#: only) never waits for localization, nav or the interfaces (a localization update takes a few ms, a relocalization
+#: more); a service composed with none of its tuple keeps a loop of its own.
+SHARED_LOOPS = (("lidar", "safety"), ("localization", "nav", "recorder", "hmi_api", "foxglove_bridge", "vda5050"))
 
 
 def container_name(index: int) -> str:
@@ -431,7 +443,7 @@ def plan_from_args(args: argparse.Namespace) -> StackPlan:
         vda5050=getattr(args, "vda5050", False), mqtt_port=getattr(args, "mqtt_port", 1883),
         mqtt_embedded=not getattr(args, "no_embedded_broker", False),
         robot_count=getattr(args, "robots", 1), robot_slots=[parse_robot_arg(r) for r in getattr(args, "robot", [])],
-        compose=compose_from_args(args),
+        compose=compose_from_args(args), shared_loop=not getattr(args, "isolated_loops", False),
     )
 
 
