@@ -120,3 +120,32 @@ def test_peers_exchange_data_directly_and_keep_going_without_the_router(transpor
             os.killpg(router.pid, signal.SIGKILL)
             router.wait()
         shutil.rmtree(socket_dir, ignore_errors=True)
+
+
+def _zenoh_threads(env: dict[str, str], router: str) -> list[str]:
+    """The zenoh runtime threads of a fresh process whose session is linked to ``router``."""
+    script = (
+        "import os, sys, time\n"
+        "from services.common.session import open_session\n"
+        "from services.common.settings import ZenohSettings\n"
+        "s = open_session(ZenohSettings(connect=[sys.argv[1]]))\n"
+        "deadline = time.monotonic() + 10\n"
+        "names = []\n"
+        "while time.monotonic() < deadline:\n"
+        "    names = [open(f'/proc/self/task/{t}/comm').read().strip() for t in os.listdir('/proc/self/task')]\n"
+        "    if any(n.startswith('rx-') for n in names):\n"
+        "        break\n"
+        "    time.sleep(0.05)\n"
+        "print(' '.join(sorted(n for n in names if n.startswith(('rx-', 'tx-')))))\n")
+    result = subprocess.run([sys.executable, "-c", script, router], capture_output=True, text=True, timeout=60,
+                            env=env, cwd=REPO_ROOT)
+    assert result.returncode == 0, result.stderr
+    return result.stdout.split()
+
+
+def test_a_service_session_receives_on_one_zenoh_thread_unless_the_environment_says_otherwise(router):
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    env["PYTHONPATH"] = str(REPO_ROOT)
+    assert [n for n in _zenoh_threads(env, router) if n.startswith("rx-")] == ["rx-0"]
+    wider = _zenoh_threads({**env, "ZENOH_RUNTIME": "(rx: (worker_threads: 3))"}, router)
+    assert [n for n in wider if n.startswith("rx-")] == ["rx-0", "rx-1", "rx-2"]

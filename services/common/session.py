@@ -39,6 +39,11 @@ SHM_POOL_KEY = "transport/shared_memory/transport_optimization/pool_size"
 #: flight. The pool is resident in every process that maps it (measured: 16 MB per pool and reader with zenoh's
 #: 16 MiB default), so its size multiplies by the readers of map, costmap and particles
 SHM_POOL_BYTES = 2 * 1024 * 1024
+#: zenoh's thread pools for a service (``ZENOH_RUNTIME``, read once when the process first uses zenoh; a value in the
+#: environment wins): one thread receiving instead of zenoh's two. A service has two or three links (the router and
+#: the peers it exchanges data with) carrying at most a few hundred messages a second, which one thread receives at
+#: the same latency; the second one only added wake-ups (measured with ``zagv bench``: docs/performance.md)
+SERVICE_RUNTIME = "(rx: (worker_threads: 1))"
 #: ``connect/retry`` unless a config sets it: redial a lost endpoint after 0.1 s, backing off to 0.5 s at most
 RECONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
@@ -66,7 +71,10 @@ def peer_socket(folder: str) -> str:
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """A zenoh.Config for ``settings``; scouting by UDP multicast is disabled in every mode."""
+    """A zenoh.Config for ``settings``; scouting by UDP multicast is disabled in every mode. A peer or client also
+    gets zenoh's thread pools of ``SERVICE_RUNTIME`` unless ``ZENOH_RUNTIME`` is set."""
+    if settings.mode != "router":
+        os.environ.setdefault("ZENOH_RUNTIME", SERVICE_RUNTIME)
     conf = zenoh.Config.from_file(settings.config_file) if settings.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
