@@ -409,3 +409,22 @@ def test_config_validation_names_the_key():
             convert_section({"lidar": bad}, "lidar", LidarConfig)
     with pytest.raises(msgspec.ValidationError):
         msgspec.convert({"range_min_m": 5, "range_max_m": 1}, LidarConfig)
+
+
+def test_the_clock_offset_is_the_quantile_of_the_window_as_telegrams_come_go_stall_and_reset():
+    """The ordered window kept with bisection gives what sorting the window for every telegram gives."""
+    from services.lidar.timesync import DeviceClockSync
+
+    rng = np.random.default_rng(7)
+    sync = DeviceClockSync(window=40, reset_s=1.0, quantile=0.05, max_drift=1.0)
+    receive_s, tx_us = 100.0, 0
+    for k in range(600):
+        tx_us = (tx_us + 40_000) % 2**32
+        if k == 300:
+            receive_s += 3.0  # a restarted simulator: a new estimate
+        if rng.random() > 0.1:  # else the service clock stood still: left out of the estimate
+            receive_s += 0.04 + float(rng.exponential(0.005))
+        sync.stamp(receive_s, tx_us - 1000, tx_us)
+        ordered = sorted(o for _, o in sync.offsets_s)
+        assert sync._window_quantile() == ordered[int(0.05 * (len(ordered) - 1))]
+    assert sync.resets == 1 and sync.stalled > 0 and len(sync.offsets_s) <= 40

@@ -25,6 +25,7 @@ than ``reset_s`` from the estimate (a device reboot, a restarted simulator) star
 
 from __future__ import annotations
 
+import bisect
 import collections
 
 U32 = 2**32
@@ -50,6 +51,9 @@ class DeviceClockSync:
         #: offsets (s) of the telegrams among the last ``window`` received while the service clock moved, with their
         #: telegram index
         self.offsets_s: collections.deque[tuple[int, float]] = collections.deque()
+        #: the same offsets in ascending order, kept with bisection as telegrams come and go (the quantile is then
+        #: read off, instead of sorting the window for every telegram)
+        self._ordered_s: list[float] = []
         self.resets = 0
         #: telegrams left out of the estimate (received while the service clock stood still)
         self.stalled = 0
@@ -64,9 +68,9 @@ class DeviceClockSync:
         return self._estimate_s
 
     def _window_quantile(self) -> float | None:
-        if not self.offsets_s:
+        ordered = self._ordered_s
+        if not ordered:
             return None
-        ordered = sorted(o for _, o in self.offsets_s)
         return ordered[int(self.quantile * (len(ordered) - 1))]
 
     def stamp(self, receive_s: float, first_beam_us: int, transmission_us: int) -> float:
@@ -83,15 +87,18 @@ class DeviceClockSync:
         current = self.offset_s
         if current is not None and abs(offset_s - current) > self.reset_s:
             self.offsets_s.clear()
+            self._ordered_s.clear()
             self.resets += 1
             current = self._estimate_s = None
         moved = current is None or self._last_receive_s is None or receive_s > self._last_receive_s
         self._last_receive_s = receive_s
         self._count += 1
         while self.offsets_s and self.offsets_s[0][0] <= self._count - self.window:
-            self.offsets_s.popleft()
+            _, old_s = self.offsets_s.popleft()
+            del self._ordered_s[bisect.bisect_left(self._ordered_s, old_s)]
         if moved:
             self.offsets_s.append((self._count, offset_s))
+            bisect.insort(self._ordered_s, offset_s)
         else:
             self.stalled += 1
         estimate = self._window_quantile()
