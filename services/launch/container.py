@@ -10,7 +10,7 @@ keeps its own node, clock, health token and liveness watchdog, and takes the sam
 (ROS 2's single-threaded ``component_container``): a message they all read wakes one loop instead of one per
 service, and they never wait for the GIL on one another. Every wake-up of a loop costs about 0.1 ms of CPU on a
 small PC and each thread that waits for the GIL is switched out and in again, which is most of what isolated loops
-cost beyond their own work (docs/performance.md, "Composition"). The price is that a long step of one delays the
+cost beyond their own work (docs/performance.md, "Shared event loops"). The price is that a long step of one delays the
 others; ``zagv up`` therefore runs the lidar and the collision monitor (the path from a scan to a stop, short
 steps only) on one loop and localization, nav and the rest on another.
 What they share is the process and one Zenoh session:
