@@ -161,3 +161,14 @@ def test_hung_loop_stops_the_systemd_watchdog_keepalives(router: str) -> None:
     assert [text for _, text in received][:1] == ["READY=1"] and feeds
     assert all(t < hung_at[0] + 0.5 for t in feeds), "keep-alives went on while the loop was blocked"
     assert code == -signal.SIGKILL  # killed at WatchdogSec by its own watchdog, as systemd would
+
+
+def test_a_service_sharing_its_loop_takes_the_longest_default_limits_of_the_loop() -> None:
+    from services.common.liveness import DEFAULT_LIMITS_S, LivenessLimits
+
+    alone = LivenessLimits.for_service("nav")
+    shared = LivenessLimits.for_service("nav", loop_mates=["localization", "recorder"])
+    assert (alone.stall_s, alone.kill_s) == DEFAULT_LIMITS_S["nav"]
+    assert (shared.stall_s, shared.kill_s) == DEFAULT_LIMITS_S["localization"]
+    # a [liveness] table's own figures still win
+    assert LivenessLimits.for_service("nav", 2.0, 4.0, ["localization"]).kill_s == 4.0

@@ -20,7 +20,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 #: (stall_s, kill_s) per service: the loop may be busy this long before the token goes, and before the process is
@@ -40,9 +40,13 @@ class LivenessLimits:
     orphan_grace_s: float = 3.0
 
     @classmethod
-    def for_service(cls, name: str, stall_s: float = 0.0, kill_s: float = 0.0) -> LivenessLimits:
-        """Per-service defaults, overridden by non-zero ``stall_s`` / ``kill_s`` ([liveness] table)."""
-        default_stall, default_kill = DEFAULT_LIMITS_S.get(name, FALLBACK_LIMITS_S)
+    def for_service(cls, name: str, stall_s: float = 0.0, kill_s: float = 0.0,
+                    loop_mates: Sequence[str] = ()) -> LivenessLimits:
+        """Per-service defaults, overridden by non-zero ``stall_s`` / ``kill_s`` ([liveness] table). A service that
+        shares its event loop with ``loop_mates`` (services/launch/container.py) waits through their steps too, so
+        its defaults are the largest of the loop's: localization's long step does not stall nav's token."""
+        limits = [DEFAULT_LIMITS_S.get(n, FALLBACK_LIMITS_S) for n in (name, *loop_mates)]
+        default_stall, default_kill = max(stall for stall, _ in limits), max(kill for _, kill in limits)
         stall = stall_s or default_stall
         kill = kill_s or max(default_kill, stall)
         if not 0 < stall <= kill:

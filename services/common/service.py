@@ -13,7 +13,7 @@ import contextlib
 import logging
 import signal
 import sys
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -180,12 +180,13 @@ async def _amain(prepared: PreparedService) -> None:
 
 async def run_service(prepared: PreparedService, session: zenoh.Session, *, handle_signals: bool,
                       on_context: Callable[[ServiceContext], None] | None = None,
-                      notify_ready: Callable[[], None] | None = None) -> None:
+                      notify_ready: Callable[[], None] | None = None, loop_mates: Sequence[str] = ()) -> None:
     """Run one service on the current loop until its main returns or ``ctx.stop`` is set.
 
     ``handle_signals``: SIGINT/SIGTERM set ``ctx.stop`` (the main thread's loop only). A container passes False,
     gets the context through ``on_context`` to stop it itself, and tells systemd READY=1 through
-    ``notify_ready`` once every service it runs is ready."""
+    ``notify_ready`` once every service it runs is ready, and names the services sharing this loop in
+    ``loop_mates`` (their steps count against this one's liveness limits)."""
     name, run, robot = prepared.name, prepared.run, prepared.robot
     clock_settings, tables = prepared.clock, prepared.tables
     loop = asyncio.get_running_loop()
@@ -223,7 +224,7 @@ async def run_service(prepared: PreparedService, session: zenoh.Session, *, hand
     watchdog = None
     period = systemd.watchdog_period_s()
     settings: LivenessSettings = tables.get("liveness") or LivenessSettings()
-    limits = LivenessLimits.for_service(name, settings.stall_s, settings.kill_s)
+    limits = LivenessLimits.for_service(name, settings.stall_s, settings.kill_s, loop_mates)
     if period:  # under systemd, WatchdogSec is the limit: the kill comes from systemd then
         limits.kill_s = max(limits.stall_s, min(limits.kill_s, 2 * period))
     liveness = LoopWatchdog(name, loop, limits, on_stall=node.withdraw_health, on_recover=node.restore_health,

@@ -194,14 +194,14 @@ class Container:
         if all_ready:
             systemd.notify("READY=1")
 
-    async def _run_one(self, prepared: PreparedService, session) -> None:
+    async def _run_one(self, prepared: PreparedService, session, loop_mates: list[str]) -> None:
         """Run one service on the current loop; how it ended is left for the main thread to report."""
         name = prepared.name
         error: BaseException | None = None
         try:
             await run_service(prepared, session, handle_signals=False,
                               on_context=lambda ctx: self._register(name, ctx),
-                              notify_ready=lambda: self._on_ready(name))
+                              notify_ready=lambda: self._on_ready(name), loop_mates=loop_mates)
         except BaseException as exc:  # reported by the main thread, which stops the rest
             error = exc
         with self._lock:
@@ -211,7 +211,8 @@ class Container:
     def _thread_main(self, group: list[PreparedService], session) -> None:
         """One event loop running every service of ``group`` until each has ended."""
         async def run_group() -> None:
-            await asyncio.gather(*(self._run_one(p, session) for p in group))
+            names = [p.name for p in group]
+            await asyncio.gather(*(self._run_one(p, session, [n for n in names if n != p.name]) for p in group))
 
         asyncio.run(run_group())
 
