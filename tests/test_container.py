@@ -22,7 +22,7 @@ from services.common.service import PreparedService
 from services.common.session import open_session
 from services.common.settings import ZenohSettings
 from services.launch.container import Container, parse_shared_loops, split_groups
-from services.launch.up import DEFAULT_COMPOSITION, StackPlan, compose_from_args, parse_compose
+from services.launch.up import DEFAULT_COMPOSITION, StackPlan, compose_from_args, parse_compose, plan_from_args
 from tests.support.waiting import wait_for
 
 
@@ -88,7 +88,7 @@ def test_zagv_up_runs_each_group_as_one_child_and_keeps_the_drive_apart():
         parse_compose(["nav,lidar", "nav"])
 
 
-def test_zagv_up_composes_by_default_and_runs_each_service_alone_with_no_compose():
+def test_zagv_up_composes_by_default_and_runs_each_service_alone_with_no_compose(tmp_path):
     from services.cli.main import build_parser
 
     def plan(*argv: str) -> StackPlan:
@@ -96,6 +96,11 @@ def test_zagv_up_composes_by_default_and_runs_each_service_alone_with_no_compose
         return StackPlan(sim=True, compose=compose_from_args(args), run_dir="/x")
 
     assert [c.name for c in plan().children()] == ["canbus", "sim", "drive", "components"]
+    parser = build_parser()
+    shared = plan_from_args(parser.parse_args(["up", "--sim", "--run-dir", str(tmp_path)]))
+    isolated = plan_from_args(parser.parse_args(["up", "--sim", "--run-dir", str(tmp_path), "--isolated-loops"]))
+    assert shared.children()[-1].argv.count("--shared-loop") == 2
+    assert "--shared-loop" not in isolated.children()[-1].argv
     assert [c.name for c in plan("--no-compose").children()] == [
         "canbus", "sim", "drive", "lidar", "safety", "localization", "nav", "recorder", "hmi_api"]
     assert [c.name for c in plan("--compose", "nav,localization").children()] == [

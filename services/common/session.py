@@ -42,7 +42,7 @@ SHM_POOL_BYTES = 2 * 1024 * 1024
 #: zenoh's thread pools for a service (``ZENOH_RUNTIME``, read once when the process first uses zenoh; a value in the
 #: environment wins): one thread receiving instead of zenoh's two. A service has two or three links (the router and
 #: the peers it exchanges data with) carrying at most a few hundred messages a second, which one thread receives at
-#: the same latency; the second one only added wake-ups (measured with ``zagv bench``: docs/performance.md)
+#: the same latency; the second one only added wake-ups (measured per thread: docs/performance.md)
 SERVICE_RUNTIME = "(rx: (worker_threads: 1))"
 #: ``connect/retry`` unless a config sets it: redial a lost endpoint after 0.1 s, backing off to 0.5 s at most
 RECONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
