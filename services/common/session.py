@@ -71,10 +71,7 @@ def peer_socket(folder: str) -> str:
 
 
 def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
-    """A zenoh.Config for ``settings``; scouting by UDP multicast is disabled in every mode. A peer or client also
-    gets zenoh's thread pools of ``SERVICE_RUNTIME`` unless ``ZENOH_RUNTIME`` is set."""
-    if settings.mode != "router":
-        os.environ.setdefault("ZENOH_RUNTIME", SERVICE_RUNTIME)
+    """A zenoh.Config for ``settings``; scouting by UDP multicast is disabled in every mode."""
     conf = zenoh.Config.from_file(settings.config_file) if settings.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
@@ -121,7 +118,10 @@ def zenoh_config(settings: ZenohSettings) -> zenoh.Config:
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """Open a zenoh session for ``settings``."""
+    """Open a zenoh session for ``settings``; a peer or client process gets zenoh's thread pools of
+    ``SERVICE_RUNTIME`` unless ``ZENOH_RUNTIME`` is set."""
+    if settings.mode != "router":
+        os.environ.setdefault("ZENOH_RUNTIME", SERVICE_RUNTIME)
     return zenoh.open(zenoh_config(settings))
 
 

@@ -134,7 +134,7 @@ def service_spec(name: str) -> ServiceSpec:
 def parse_shared_loops(values: list[str], names: list[str]) -> list[list[str]]:
     """The ``--shared-loop`` groups: each comma-separated services of this container, none named twice."""
     groups: list[list[str]] = []
-    seen: list[str] = []
+    seen: set[str] = set()
     for value in values:
         shared = [n.strip() for n in value.split(",") if n.strip()]
         if not shared:
@@ -144,7 +144,7 @@ def parse_shared_loops(values: list[str], names: list[str]) -> list[list[str]]:
                 raise ConfigError(f"--shared-loop: {name!r} is not a service of this container ({', '.join(names)})")
             if name in seen:
                 raise ConfigError(f"--shared-loop: {name} is given twice")
-            seen.append(name)
+            seen.add(name)
         groups.append(shared)
     return groups
 
@@ -218,17 +218,18 @@ class Container:
 
     def loop_groups(self) -> list[list[PreparedService]]:
         """The services of each event loop, in the order of the services: a shared loop where its first one is."""
+        loop_of = {name: k for k, names in enumerate(self.shared_loops) for name in names}
         groups: list[list[PreparedService]] = []
         shared: dict[int, list[PreparedService]] = {}
         for prepared in self.services:
-            k = next((i for i, names in enumerate(self.shared_loops) if prepared.name in names), None)
+            k = loop_of.get(prepared.name)
             if k is None:
                 groups.append([prepared])
-                continue
-            if k not in shared:
-                shared[k] = []
+            elif k in shared:
+                shared[k].append(prepared)
+            else:
+                shared[k] = [prepared]
                 groups.append(shared[k])
-            shared[k].append(prepared)
         return groups
 
     def stop(self) -> None:

@@ -206,9 +206,7 @@ class StackPlan:
                         argv = [a for member in group for a in
                                 (SEPARATOR, member, *self.common_args(k), *self.service_sets(member, k))]
                         child = self.child_name(k, container_name(groups.index(group)))
-                        loop_args = [a for names in SHARED_LOOPS if self.shared_loop
-                                     for shared in [[s for s in group if s in names]] if len(shared) > 1
-                                     for a in ("--shared-loop", ",".join(shared))]
+                        loop_args = shared_loop_args(group) if self.shared_loop else []
                         specs.append(ChildSpec(child, python_module("services.launch.container", "--name", child,
                                                                     *loop_args, *argv[1:]), env=env))
                 continue
@@ -229,6 +227,17 @@ DEFAULT_COMPOSITION = ["lidar", "safety", "localization", "nav", "recorder", "hm
 #: only) never waits for localization, nav or the interfaces (a localization update takes a few ms, a relocalization
 #: more); a service composed with none of its tuple keeps a loop of its own.
 SHARED_LOOPS = (("lidar", "safety"), ("localization", "nav", "recorder", "hmi_api", "foxglove_bridge", "vda5050"))
+
+
+def shared_loop_args(group: list[str]) -> list[str]:
+    """The container's ``--shared-loop`` arguments for a composed ``group``: one per SHARED_LOOPS tuple of which the
+    group holds two services or more."""
+    args: list[str] = []
+    for names in SHARED_LOOPS:
+        shared = [s for s in group if s in names]
+        if len(shared) > 1:
+            args += ["--shared-loop", ",".join(shared)]
+    return args
 
 
 def container_name(index: int) -> str:
