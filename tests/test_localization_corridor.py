@@ -57,6 +57,32 @@ def test_global_localization_in_the_hall_converges_from_every_seed(world, grid):
     assert all(s is not None and s <= 5.0 for s in settled_m), settled_m
 
 
+GOAL_4 = (24.4, 3.5, 1.57)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_global_localization_requested_while_tracking_ignores_the_old_pose(world, grid, seed):
+    """Global localization asked for at goal 4 after tracking there, then 5 m north at 1 m/s with a scan every
+    0.25 m (a filter too busy for more). Annealing then takes longer than ``recovery_attempt_s``: the request is the
+    global stage of a recovery (``global_recovery_s``), and no recovery may search around the pose held before it,
+    where the robot no longer is (it settled on the corridor seen from there, 5 m off)."""
+    amcl = Amcl(grid, AmclParams(random_seed=100 + seed))
+    odometry = Odometry(GOAL_4, rng=np.random.default_rng(seed + 20))
+    amcl.set_initial_pose(GOAL_4, np.diag([0.01, 0.01, 0.001]), stamp_s=0.0)
+    held = drive(amcl, world, [GOAL_4] * 40, seed=seed, odometry=odometry, stamps_s=[0.04 * k for k in range(40)])
+    assert amcl.state == "tracking" and held.errors_xy_m[-1] < 0.05
+    amcl.global_localization(stamp_s=1.6)
+    assert amcl.last_good is None
+    north = list(route([GOAL_4, (24.0, 7.0, 1.57), (23.8, 8.5, 1.57)], step_m=0.25, step_rad=0.25))
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(np.asarray(north)[:, :2], axis=0).T))])
+    result = drive(amcl, world, north, seed=seed + 50, odometry=odometry, stamps_s=list(1.6 + travelled / 1.0))
+    settled = result.settled_after_m(0.2)
+    print(f"\nglobal localization while tracking, seed {seed}: settled after {settled} m, final "
+          f"{result.errors_xy_m[-1]:.3f} m, {amcl.state}: {amcl.reason}")
+    assert "(24.40, 3.50)" not in amcl.reason
+    assert settled is not None and settled <= 5.0
+
+
 def test_kidnapped_robot_recovers_within_10m(world, grid):
     amcl = Amcl(grid, AmclParams(random_seed=3))
     before = list(route([(2.0, 3.0, 0.0), (8.0, 3.2, 0.0)]))

@@ -121,7 +121,8 @@ class AmclParams(msgspec.Struct, kw_only=True, forbid_unknown_fields=True):
     track_spread_m: float = 0.25
     #: recovery once lost: first ``local_recovery_attempts`` sensor resets within ``local_recovery_radius_m`` of the
     #: last pose the filter trusted (each attempt doubles the radius), each given ``recovery_attempt_s`` to converge,
-    #: then global localization, repeated every ``global_recovery_s`` while it does not converge. While not
+    #: then global localization, repeated every ``global_recovery_s`` while it does not converge (a requested global
+    #: localization too: annealing over uniform particles takes more updates than a local reset). While not
     #: tracking the filter updates at least every ``recovery_update_period_s``, moving or not
     local_recovery_attempts: int = 2
     local_recovery_radius_m: float = 2.0
@@ -1093,7 +1094,8 @@ class Amcl:
     particles agree; ``tracking`` → ``lost`` when they stop fitting. Lost starts the recovery: sensor resets around
     ``last_good`` (the last pose judged tracking, or the initial pose), then global localization; ``reason`` says
     where it stands. A filter that is localizing for longer than ``recovery_attempt_s`` without converging (e.g. an
-    initial pose 2 m off) is declared lost the same way.
+    initial pose 2 m off) is declared lost the same way. A requested global localization is the global stage itself:
+    it forgets ``last_good`` and has ``global_recovery_s`` to converge before it starts again.
     """
 
     #: scan period assumed when ``process`` gets no stamp (s)
@@ -1187,6 +1189,12 @@ class Amcl:
         self.pf.init_uniform()
         self.initial_prior = None
         self._reinitialised(stamp_s)
+        # the request says the pose is unknown: this is the global stage of a recovery, given global_recovery_s, and
+        # no pose from before it is trusted (a local search around the old pose, where the robot no longer is,
+        # would settle on whatever there looks like the scan)
+        self._stage = self.params.local_recovery_attempts
+        self.last_good = None
+        self._good_map_odom = None
         self.unconfirmed = True
         self._track_map_odom = None
         self._track_fit = None
@@ -1415,13 +1423,10 @@ class Amcl:
             self.reason = (f"the scans fit the pose given but do not fix it (spread {self.spread_m:.2f} m): "
                            "move the robot, or give the pose more precisely")
             return
-        if self._stage < 0:
-            if self.state != "lost":  # an initial pose (or a global localization) that never converged: it was wrong
-                self.lost_at = now
-                self.lost_reason = f"not converged {limit:.0f} s after the {self.reason}"
-            self._start_stage(0)
-        else:
-            self._start_stage(min(self._stage + 1, p.local_recovery_attempts))
+        if self.state != "lost":  # an initial pose (or a global localization) that never converged: it was wrong
+            self.lost_at = now
+            self.lost_reason = f"not converged {limit:.0f} s after the {self.reason}"
+        self._start_stage(0 if self._stage < 0 else min(self._stage + 1, p.local_recovery_attempts))
 
     def _low_score_sustained(self, pose: tuple[float, float, float], odom_pose: tuple[float, float, float],
                              beams: ScanBeams, mount: tuple[float, float, float]) -> bool:

@@ -120,21 +120,25 @@ MOUNT = (0.45, 0.0, 0.0)
 
 
 def drive(amcl: Amcl, world: World, truth: list[tuple[float, float, float]], *, seed: int = 1,
-          mount: tuple[float, float, float] = MOUNT, odometry: Odometry | None = None) -> RunResult:
-    """Feed AMCL one scan per true pose (odometry from the true increments) and record its errors."""
+          mount: tuple[float, float, float] = MOUNT, odometry: Odometry | None = None,
+          stamps_s: list[float] | None = None) -> RunResult:
+    """Feed AMCL one scan per true pose (odometry from the true increments) and record its errors. ``stamps_s``:
+    each scan's time (default: ``Amcl.DEFAULT_SCAN_PERIOD_S`` apart)."""
+    if stamps_s is not None and len(stamps_s) != len(truth):
+        raise ValueError(f"{len(stamps_s)} stamps for {len(truth)} poses")
     laser = Laser(world, rng=np.random.default_rng(seed + 10))
     odom = odometry or Odometry(truth[0], rng=np.random.default_rng(seed + 20))
     params: AmclParams = amcl.params
     exy, eth, dist = [], [], []
     travelled = 0.0
     last = truth[0]
-    for true in truth:
+    for i, true in enumerate(truth):
         travelled += math.hypot(true[0] - last[0], true[1] - last[1])
         last = true
         o = odom.step(true)
         beams = select_beams(laser.scan(true, mount), laser.angle_min, laser.angle_increment, laser.range_min,
                              laser.range_max, params)
-        amcl.process(o, beams, mount)
+        amcl.process(o, beams, mount, None if stamps_s is None else stamps_s[i])
         if amcl.map_odom is None:
             continue
         est = compose(amcl.map_odom, o)
